@@ -1,0 +1,87 @@
+"""The ``telefringe`` command. Each sub-command lives in its own module and registers
+itself on :data:`app`; this module handles global options and user errors."""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from .. import __version__
+from ._common import err_console, state
+
+app = typer.Typer(
+    name="telefringe",
+    help="Telecentric fringe-projection profilometry: simulate, decode, calibrate, "
+    "reconstruct and measure.\n\nExample: telefringe demo",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+
+def _version(value: bool):
+    if value:
+        typer.echo(f"telefringe {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    quiet: bool = typer.Option(False, "-q", "--quiet", help="Print only errors."),
+    verbose: bool = typer.Option(False, "-v", "--verbose", help="Print more detail."),
+    debug: bool = typer.Option(False, "--debug", help="Show tracebacks for errors."),
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                 help="Print the version and exit."),
+):
+    """Telecentric fringe-projection profilometry."""
+    state.quiet, state.verbose, state.debug = quiet, verbose, debug
+
+
+def _register_all():
+    from . import calibrate, decode, measure, paper, reconstruct, simulate
+
+    for mod in (simulate, decode, calibrate, reconstruct, measure, paper):
+        mod.register(app)
+
+
+_register_all()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: run the app; user errors end with one line and exit status 2."""
+    from ..io.errors import InputError
+
+    if argv is None:
+        argv = sys.argv[1:]
+    state.debug = "--debug" in argv
+    try:
+        app(args=argv, prog_name="telefringe", standalone_mode=False)
+    except InputError as exc:
+        if state.debug:
+            raise
+        err_console.print(f"[bold red]error:[/bold red] {exc}", soft_wrap=True)
+        return 2
+    except typer.Exit as exc:
+        return exc.exit_code
+    except typer.Abort:
+        err_console.print("aborted")
+        return 130
+    except KeyboardInterrupt:
+        err_console.print("interrupted: nothing was written")
+        return 130
+    except Exception as exc:  # click usage errors
+        import click
+
+        if isinstance(exc, click.exceptions.ClickException):
+            exc.show()
+            return exc.exit_code
+        if isinstance(exc, click.exceptions.Exit):
+            return exc.exit_code
+        raise
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,56 @@
+"""Shared command-line plumbing: console, verbosity, progress bars."""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+__all__ = ["state", "console", "err_console", "progress_bar", "info", "detail"]
+
+console = Console(highlight=False)
+err_console = Console(stderr=True, highlight=False)
+
+
+@dataclass
+class _State:
+    quiet: bool = False
+    verbose: bool = False
+    debug: bool = False
+
+
+state = _State()
+
+
+def info(msg: str) -> None:
+    """Print a normal message (suppressed by --quiet)."""
+    if not state.quiet:
+        console.print(msg)
+
+
+def detail(msg: str) -> None:
+    """Print a verbose-only message."""
+    if state.verbose and not state.quiet:
+        console.print(f"[dim]{msg}[/dim]")
+
+
+@contextlib.contextmanager
+def progress_bar(description: str, total: int | None):
+    """A rich progress bar; yields ``advance(n=1)``. Silent with --quiet."""
+    if state.quiet:
+        yield lambda n=1: None
+        return
+    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(),
+                  MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
+                  console=err_console, transient=False) as prog:
+        task = prog.add_task(description, total=total)
+        yield lambda n=1: prog.advance(task, n)

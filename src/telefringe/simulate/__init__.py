@@ -1,0 +1,1 @@
+"""The virtual rig: analytic scenes, an honest renderer and rig presets."""
