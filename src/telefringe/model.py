@@ -265,7 +265,9 @@ class TelecentricDevice:
     def pixel_to_sensor(self, u, v):
         """Pixel (u, v) (...,) -> distorted sensor mm (xd, yd) (...,)."""
         k = self.intrinsics
-        return (np.asarray(u, dtype=float) - k.u0) * k.du, (np.asarray(v, dtype=float) - k.v0) * k.dv
+        u = np.asarray(u, dtype=float)
+        v = np.asarray(v, dtype=float)
+        return (u - k.u0) * k.du, (v - k.v0) * k.dv
 
     # -- forward --------------------------------------------------------------
     def world_to_sensor(self, points_world):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import struct
 from pathlib import Path
 
@@ -117,11 +116,12 @@ def write_png(path, image: np.ndarray) -> None:
 
     image = np.asarray(image)
     if image.dtype not in (np.uint8, np.uint16) or image.ndim != 2:
-        raise ValueError(f"write_png needs a 2-D uint8/uint16 array, got {image.dtype} {image.shape}")
+        raise ValueError(
+            f"write_png needs a 2-D uint8/uint16 array, got {image.dtype} {image.shape}"
+        )
     ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise OSError(f"{path}: PNG encoding failed")
     with open(path, "wb") as f:
         f.write(buf.tobytes())
         f.flush()
-        os.fsync(f.fileno()) if os.environ.get("TELEFRINGE_FSYNC") else None
