@@ -34,6 +34,7 @@ __all__ = [
     "ConvergenceError",
     "Intrinsics",
     "TelecentricDevice",
+    "Rig",
     "rotation_from_rotvec",
     "rotvec_from_rotation",
     "distort_sensor",
@@ -339,3 +340,15 @@ class TelecentricDevice:
         R = self.R_dev_world
         origin = a[..., None] * R[0] + b[..., None] * R[1]
         return origin, R[2].copy()
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """A telecentric camera and projector expressed in one world frame (mm).
+
+    The world frame of a calibrated rig is the calibration target at its reference pose
+    (x along the grid's columns, y along its rows, z toward the camera).
+    """
+
+    camera: TelecentricDevice
+    projector: TelecentricDevice
