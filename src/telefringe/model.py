@@ -47,8 +47,14 @@ class ConvergenceError(ValueError):
 
 
 def rotation_from_rotvec(rotvec) -> np.ndarray:
-    """Rodrigues: rotation vector (3,) in radians -> rotation matrix (3, 3)."""
-    r = np.asarray(rotvec, dtype=float).reshape(3)
+    """Rodrigues: rotation vector (3,) in radians -> rotation matrix (3, 3).
+
+    Raises ``ValueError`` if ``rotvec`` is not 3 finite numbers.
+    """
+    r = np.asarray(rotvec, dtype=float)
+    if r.size != 3 or not np.all(np.isfinite(r)):
+        raise ValueError(f"rotvec must be 3 finite numbers (radians), got {rotvec!r}")
+    r = r.reshape(3)
     theta = float(np.linalg.norm(r))
     K = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
     if theta < 1e-12:
@@ -60,24 +66,28 @@ def rotation_from_rotvec(rotvec) -> np.ndarray:
 def rotvec_from_rotation(R) -> np.ndarray:
     """Inverse Rodrigues: rotation matrix (3, 3) -> rotation vector (3,) in radians.
 
-    Robust near 0 and pi. Raises ``ValueError`` if ``R`` is not a proper rotation.
+    The angle (the vector's norm) is in [0, pi]. Accurate to rounding error at every
+    angle, including near 0 and pi (the angle comes from ``atan2(sin, cos)``; near pi the
+    axis comes from the symmetric part of ``R``). At exactly pi the sign of the axis is
+    arbitrary (both give the same rotation). Raises ``ValueError`` if ``R`` is not a
+    proper rotation.
     """
     R = np.asarray(R, dtype=float)
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         raise ValueError("R must be a finite (3, 3) array")
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+    if not np.allclose(R @ R.T, np.eye(3), rtol=0.0, atol=1e-6) or np.linalg.det(R) < 0:
         raise ValueError("R is not a proper rotation (R R^T != I or det < 0)")
-    cos_t = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    theta = float(np.arccos(cos_t))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if theta < 1e-8:
-        return 0.5 * w
-    if np.pi - theta > 1e-4:
-        return theta / (2.0 * np.sin(theta)) * w
-    # near pi: axis from the symmetric part
-    B = (R + np.eye(3)) / 2.0
-    i = int(np.argmax(np.diag(B)))
-    axis = B[:, i] / np.sqrt(B[i, i])
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # 2 sin(t) axis
+    sin_t = 0.5 * float(np.linalg.norm(w))
+    cos_t = 0.5 * (float(np.trace(R)) - 1.0)
+    theta = float(np.arctan2(sin_t, cos_t))
+    if cos_t > -0.7:
+        # w is well conditioned here (sin_t / theta >= 0.55); theta / sin(theta) -> 1 at 0
+        return (0.5 if sin_t == 0.0 else theta / (2.0 * sin_t)) * w
+    # near pi: the symmetric part is cos(t) I + (1 - cos(t)) a a^T
+    aaT = (0.5 * (R + R.T) - cos_t * np.eye(3)) / (1.0 - cos_t)
+    i = int(np.argmax(np.diag(aaT)))
+    axis = aaT[:, i] / np.sqrt(aaT[i, i])
     axis /= np.linalg.norm(axis)
     if np.dot(axis, w) < 0:
         axis = -axis
@@ -123,8 +133,9 @@ def undistort_sensor(xd, yd, k1: float, s1: float, s2: float, *, tol: float = 1e
     Raises
     ------
     ConvergenceError
-        If any finite input point does not converge (distortion too strong for it to
-        be invertible there). NaN inputs give NaN outputs.
+        If any finite input point does not converge, or converges only to a root
+        beyond the fold of the distortion (where the forward map is not invertible).
+        Non-finite inputs give non-finite outputs (NaN stays NaN).
     """
     xd, yd = np.broadcast_arrays(np.asarray(xd, dtype=float), np.asarray(yd, dtype=float))
     xu = xd.copy()
@@ -132,32 +143,55 @@ def undistort_sensor(xd, yd, k1: float, s1: float, s2: float, *, tol: float = 1e
     if k1 == 0.0 and s1 == 0.0 and s2 == 0.0:
         return xu, yu
     finite = np.isfinite(xd) & np.isfinite(yd)
-    for _ in range(max_iter):
-        r2 = xu * xu + yu * yu
-        fx = xu + k1 * xu * r2 + s1 * r2 - xd
-        fy = yu + k1 * yu * r2 + s2 * r2 - yd
-        # Jacobian of the forward map
+    # the residual cannot be smaller than the rounding of the forward model
+    thresh = np.maximum(tol, 64.0 * np.finfo(float).eps * (np.abs(xd) + np.abs(yd)))
+
+    def jacobian(xu, yu, r2):
         a = 1.0 + k1 * (r2 + 2.0 * xu * xu) + 2.0 * s1 * xu
         b = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
         c = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
         d = 1.0 + k1 * (r2 + 2.0 * yu * yu) + 2.0 * s2 * yu
-        det = a * d - b * c
-        dx = (d * fx - b * fy) / det
-        dy = (-c * fx + a * fy) / det
-        xu = xu - dx
-        yu = yu - dy
-        err = np.abs(fx) + np.abs(fy)
-        if not np.any(err[finite] > tol):
-            break
-    r2 = xu * xu + yu * yu
-    res = np.abs(xu + k1 * xu * r2 + s1 * r2 - xd) + np.abs(yu + k1 * yu * r2 + s2 * r2 - yd)
-    bad = finite & ~(res <= tol * 10)
-    if np.any(bad):
-        n = int(np.count_nonzero(bad))
+        return a, b, c, d
+
+    # diverging points (no inverse) may overflow; they are reported below, not warned
+    with np.errstate(all="ignore"):
+        for _ in range(max_iter):
+            r2 = xu * xu + yu * yu
+            fx = xu + k1 * xu * r2 + s1 * r2 - xd
+            fy = yu + k1 * yu * r2 + s2 * r2 - yd
+            a, b, c, d = jacobian(xu, yu, r2)
+            det = a * d - b * c
+            dx = (d * fx - b * fy) / det
+            dy = (-c * fx + a * fy) / det
+            xu = xu - dx
+            yu = yu - dy
+            err = np.abs(fx) + np.abs(fy)
+            if not np.any((err > thresh)[finite]):
+                break
+        r2 = xu * xu + yu * yu
+        res = (np.abs(xu + k1 * xu * r2 + s1 * r2 - xd)
+               + np.abs(yu + k1 * yu * r2 + s2 * r2 - yd))
+        a, b, c, d = jacobian(xu, yu, r2)
+        # A root where the forward map is folded (det <= 0) or flipped (trace <= 0) is
+        # not the inverse: it lies beyond the fold of the distortion, e.g. the mirrored
+        # outer root of a strong barrel distortion.
+        unfolded = (a * d - b * c > 0) & (a + d > 0)
+    diverged = finite & ~(res <= 10.0 * thresh)
+    folded = finite & ~diverged & ~unfolded
+    if np.any(diverged) or np.any(folded):
+        parts = []
+        if np.any(diverged):
+            worst = np.where(np.isnan(res), np.inf, res)[diverged].max()
+            parts.append(f"{int(np.count_nonzero(diverged))} did not converge (worst residual "
+                         f"{float(worst):.3g} mm)")
+        if np.any(folded):
+            parts.append(f"{int(np.count_nonzero(folded))} only have a solution beyond the "
+                         "fold of the distortion")
         raise ConvergenceError(
-            f"undistortion did not converge for {n} point(s) (worst residual "
-            f"{float(np.nanmax(res[bad])):.3g} mm): the distortion is not invertible there; "
-            "check the distortion coefficients or restrict to the image area"
+            f"undistortion failed for {int(np.count_nonzero(diverged | folded))} of "
+            f"{int(np.count_nonzero(finite))} point(s): {' and '.join(parts)}. The distortion "
+            f"(k1={k1:g} 1/mm^2, s1={s1:g}, s2={s2:g} 1/mm) is not invertible there; check "
+            "the coefficients or keep to the image area"
         )
     return xu, yu
 
@@ -190,14 +224,22 @@ class Intrinsics:
     def __post_init__(self):
         for name in ("m", "du", "dv", "u0", "v0", "k1", "s1", "s2"):
             val = getattr(self, name)
-            if not np.isfinite(val):
-                raise ValueError(f"Intrinsics.{name} must be finite, got {val!r}")
+            ok = (isinstance(val, int | float | np.integer | np.floating)
+                  and not isinstance(val, bool) and bool(np.isfinite(val)))
+            if not ok:
+                raise ValueError(f"Intrinsics.{name} must be a finite number, got {val!r}")
         for name in ("m", "du", "dv"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"Intrinsics.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("width", "height"):
-            if int(getattr(self, name)) < 0:
-                raise ValueError(f"Intrinsics.{name} must be >= 0")
+            val = getattr(self, name)
+            ok = (isinstance(val, int | float | np.integer | np.floating)
+                  and not isinstance(val, bool) and bool(np.isfinite(val))
+                  and float(val) == int(val) and int(val) >= 0)
+            if not ok:
+                raise ValueError(f"Intrinsics.{name} must be an integer >= 0 (pixels), "
+                                 f"got {val!r}")
+            object.__setattr__(self, name, int(val))
 
     @property
     def distortion(self) -> tuple[float, float, float]:
@@ -229,7 +271,7 @@ class TelecentricDevice:
         t = np.array(self.t_dev, dtype=float).reshape(-1)
         if R.shape != (3, 3) or not np.all(np.isfinite(R)):
             raise ValueError("R_dev_world must be a finite (3, 3) array")
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-9) or np.linalg.det(R) < 0:
+        if not np.allclose(R @ R.T, np.eye(3), rtol=0.0, atol=1e-9) or np.linalg.det(R) < 0:
             raise ValueError("R_dev_world must be a proper rotation")
         if t.shape != (2,) or not np.all(np.isfinite(t)):
             raise ValueError("t_dev must be a finite (2,) array (tx, ty) in mm")
