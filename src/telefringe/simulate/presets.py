@@ -1,0 +1,235 @@
+"""Virtual rig presets: a true telecentric camera + projector and their photometry.
+
+``paper``
+    After Tables 1 and 2 of the paper (NOTES.md): camera 1280 x 1024, 5.2 um pixels,
+    m = 0.1597; projector 800 x 600, 13.7 um pixels, m = 0.11733; principal points and
+    rotations from the tables. The paper's rotations are re-expressed in our world frame
+    (z toward the camera): ``R_ours = R_paper @ Ry(pi)``, so the camera looks down
+    (``R[2] ~ (0, 0, -1)``), the grid's x runs to the right and y up in the camera image,
+    and the camera and projector axes are 25.7 deg apart. Translations put the 9 x 11
+    plate (reference pose = world frame) in the middle of both fields of view. The
+    tables' distortion coefficients are implausible for telecentric lenses (NOTES.md), so
+    distortion is chosen to move the image corners by about 1.5-3.5 px on both devices.
+``fast``
+    The same geometry with a 4 x 4 binned camera (320 x 256, 20.8 um pixels) and a 2 x 2
+    binned projector (400 x 300, 27.4 um pixels), for tests: the same plate fits and the
+    default fringe ladder still has >= 6 projector pixels per period.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..io.scan import CircleGridTarget
+from ..model import Intrinsics, Rig, TelecentricDevice, rotation_from_rotvec
+
+__all__ = ["Photometry", "VirtualRig", "get_preset", "PRESETS", "PAPER_TARGET",
+           "HDR_EXPOSURES"]
+
+#: The calibration plate of the paper: 9 x 11 dark circles, pitch 3 mm, diameter 1.5 mm.
+PAPER_TARGET = CircleGridTarget(rows=9, cols=11, pitch_mm=3.0, diameter_mm=1.5)
+
+#: Relative exposure times of the default HDR set (BGA highlights unsaturated at the last).
+HDR_EXPOSURES = (1.0, 0.3, 0.1)
+
+
+@dataclass(frozen=True)
+class Photometry:
+    """Radiometry and sensor of the virtual rig.
+
+    Attributes
+    ----------
+    gamma : float
+        Projector response exponent (not compensated): a pattern level ``p`` in [0, 1]
+        emits ``black_level + (1 - black_level) * p**gamma``.
+    black_level : float
+        Light the projector emits for level 0, relative to full white.
+    projector_bit_depth : int
+        Bit depth of the projector's pattern levels (8).
+    ambient : float
+        Uniform room light, relative to the projector's full white (reaches shadows).
+    dn_per_radiance : float
+        Camera signal, in 8-bit DN at exposure 1, of an albedo-1 Lambertian surface lit at
+        normal incidence by the projector's full white. With the default 250, the light
+        area of the plate (albedo 0.9, 28 deg incidence) reads about 200 DN.
+    full_well_e : float
+        Electrons at saturation (the 8-bit full scale): sets shot noise. 13000 e- gives
+        about 2 DN standard deviation at 200 DN (with read noise and quantisation).
+    read_noise_e : float
+        Read noise, electrons RMS.
+    bit_depth : int
+        Camera output: 8 (uint8), 12 (stored in uint16, MSB-aligned with the top bits
+        replicated below, so full scale is 65535) or 16 (uint16).
+    camera_blur_px : float
+        Camera defocus: Gaussian sigma in camera pixels (discrete normalised kernel on
+        the pixel-integrated image; 0 disables).
+    projector_blur_px : float
+        Projector defocus: Gaussian sigma in projector pixels, convolved exactly with
+        the projector's square pixels (fill factor 1).
+    supersample : int
+        Camera integration: ``supersample`` x ``supersample`` rays per pixel (midpoint
+        rule over the square pixel).
+    edge_supersample : int
+        Rays per pixel side on pixels that straddle an edge (marker, ball, shadow, step
+        wall, silhouette), found from the first pass; 0 disables the refinement.
+    specular_sigma_deg : float
+        Width (Gaussian sigma, deg) of the specular lobe around the mirror direction
+        (surface roughness and the illumination aperture together).
+    """
+
+    gamma: float = 2.2
+    black_level: float = 0.02
+    projector_bit_depth: int = 8
+    ambient: float = 0.01
+    dn_per_radiance: float = 250.0
+    full_well_e: float = 13000.0
+    read_noise_e: float = 10.0
+    bit_depth: int = 8
+    camera_blur_px: float = 0.5
+    projector_blur_px: float = 0.6
+    supersample: int = 3
+    edge_supersample: int = 9
+    specular_sigma_deg: float = 6.0
+
+    def __post_init__(self):
+        for name in ("gamma", "dn_per_radiance", "full_well_e"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"Photometry.{name} must be finite and > 0, got {v!r}")
+        for name in ("black_level", "ambient", "read_noise_e", "camera_blur_px",
+                     "projector_blur_px"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"Photometry.{name} must be finite and >= 0, got {v!r}")
+        if self.black_level >= 1:
+            raise ValueError("Photometry.black_level must be < 1")
+        if self.bit_depth not in (8, 12, 16):
+            raise ValueError(f"Photometry.bit_depth must be 8, 12 or 16, got {self.bit_depth!r}")
+        if self.projector_bit_depth not in (8, 10, 12, 16):
+            raise ValueError("Photometry.projector_bit_depth must be 8, 10, 12 or 16")
+        if int(self.supersample) < 1:
+            raise ValueError("Photometry.supersample must be >= 1")
+        if int(self.edge_supersample) < 0:
+            raise ValueError("Photometry.edge_supersample must be >= 0")
+        if not (np.isfinite(self.specular_sigma_deg) and self.specular_sigma_deg > 0):
+            raise ValueError("Photometry.specular_sigma_deg must be > 0")
+
+    @property
+    def max_value(self) -> float:
+        """The camera's saturation value as stored (255, 65535)."""
+        return 255.0 if self.bit_depth == 8 else 65535.0
+
+    @property
+    def full_scale_dn(self) -> float:
+        """Largest raw level of the camera's ADC (255, 4095, 65535)."""
+        return float(2 ** self.bit_depth - 1)
+
+
+@dataclass(frozen=True, eq=False)
+class VirtualRig:
+    """A virtual rig: the true devices (world = reference target frame) and photometry.
+
+    Attributes
+    ----------
+    name : str
+    rig : telefringe.model.Rig
+        True camera and projector; the world frame is the calibration target at its
+        reference pose (x along columns, y along rows, z toward the camera).
+    photometry : Photometry
+    target : CircleGridTarget
+        The calibration plate the rig is calibrated with.
+    depth_of_field_mm : float
+        Usable depth around z = 0 (the scene should stay within +- half of it).
+    """
+
+    name: str
+    rig: Rig
+    photometry: Photometry = field(default_factory=Photometry)
+    target: CircleGridTarget = PAPER_TARGET
+    depth_of_field_mm: float = 5.0
+
+    @property
+    def camera(self) -> TelecentricDevice:
+        return self.rig.camera
+
+    @property
+    def projector(self) -> TelecentricDevice:
+        return self.rig.projector
+
+    def with_photometry(self, **changes) -> VirtualRig:
+        """A copy whose photometry has some fields replaced."""
+        from dataclasses import replace
+
+        return replace(self, photometry=replace(self.photometry, **changes))
+
+
+# Paper rotations (Tables 1 and 2), axis-angle, in the paper's world frame.
+_ROTVEC_CAM_PAPER = (-0.09134, 0.16807, -3.04052)
+_ROTVEC_PROJ_PAPER = (-0.78604, 0.06802, -3.10345)
+
+
+def _paper_rotations() -> tuple[np.ndarray, np.ndarray]:
+    flip = rotation_from_rotvec([0.0, np.pi, 0.0])
+    return (rotation_from_rotvec(_ROTVEC_CAM_PAPER) @ flip,
+            rotation_from_rotvec(_ROTVEC_PROJ_PAPER) @ flip)
+
+
+def _centred_device(intr: Intrinsics, R: np.ndarray, point_world) -> TelecentricDevice:
+    """A device with rotation R whose undistorted image of ``point_world`` is the image
+    centre."""
+    point = np.asarray(point_world, dtype=float)
+    uc = (intr.width - 1) / 2.0
+    vc = (intr.height - 1) / 2.0
+    tx = (uc - intr.u0) * intr.du / intr.m - R[0] @ point
+    ty = (vc - intr.v0) * intr.dv / intr.m - R[1] @ point
+    return TelecentricDevice(intr, R, np.array([tx, ty]))
+
+
+def _plate_centre(target: CircleGridTarget) -> np.ndarray:
+    return np.array([(target.cols - 1) * target.pitch_mm / 2.0,
+                     (target.rows - 1) * target.pitch_mm / 2.0, 0.0])
+
+
+def _paper() -> VirtualRig:
+    Rc, Rp = _paper_rotations()
+    cam = Intrinsics(m=0.1597, du=0.0052, dv=0.0052, u0=474.9241, v0=513.0791,
+                     k1=1.5e-4, s1=-2e-5, s2=3e-5, width=1280, height=1024)
+    proj = Intrinsics(m=0.11733, du=0.0137, dv=0.0137, u0=460.3254, v0=468.2354,
+                      k1=7e-5, s1=1e-5, s2=-2e-5, width=800, height=600)
+    centre = _plate_centre(PAPER_TARGET)
+    rig = Rig(_centred_device(cam, Rc, centre), _centred_device(proj, Rp, centre))
+    return VirtualRig(name="paper", rig=rig)
+
+
+def _fast() -> VirtualRig:
+    Rc, Rp = _paper_rotations()
+    # binned pixels: centre of binned pixel b covers fine pixels [4b, 4b + 3]
+    cam = Intrinsics(m=0.1597, du=0.0208, dv=0.0208, u0=(474.9241 + 0.5) / 4 - 0.5,
+                     v0=(513.0791 + 0.5) / 4 - 0.5, k1=6e-4, s1=-8e-5, s2=1.2e-4,
+                     width=320, height=256)
+    proj = Intrinsics(m=0.11733, du=0.0274, dv=0.0274, u0=(460.3254 + 0.5) / 2 - 0.5,
+                      v0=(468.2354 + 0.5) / 2 - 0.5, k1=2.8e-4, s1=4e-5, s2=-8e-5,
+                      width=400, height=300)
+    centre = _plate_centre(PAPER_TARGET)
+    rig = Rig(_centred_device(cam, Rc, centre), _centred_device(proj, Rp, centre))
+    return VirtualRig(name="fast", rig=rig)
+
+
+PRESETS = {"paper": _paper, "fast": _fast}
+
+
+def get_preset(name: str) -> VirtualRig:
+    """The virtual rig called ``name`` ("paper" or "fast").
+
+    Raises
+    ------
+    ValueError
+        For an unknown name (the message lists the known ones).
+    """
+    try:
+        make = PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown rig preset {name!r}; known: {', '.join(PRESETS)}") from None
+    return make()

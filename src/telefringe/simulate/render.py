@@ -1,0 +1,579 @@
+"""The virtual rig's renderer: scans of analytic scenes, with their ground truth.
+
+Physics, in the order light meets it
+------------------------------------
+1. Projector: pattern levels quantised to ``projector_bit_depth`` bits (the same images
+   :func:`telefringe.patterns.pattern_stack` makes), gamma and black level per pixel
+   (``I = black + (1 - black) * p**gamma``), square pixels (fill factor 1) and a Gaussian
+   defocus: the emitted intensity along the fringe axis is the exact convolution of the
+   pixel values with box and Gaussian (error functions), tabulated every 1/32 projector
+   pixel and linearly interpolated (error <= 1e-4 of the pattern contrast, tested).
+   The panel edges (beyond which there is no light) are blurred the same way.
+   Collimated illumination along the projector axis.
+2. Scene: each camera sub-pixel ray (orthographic, through the camera's inverse
+   distortion) meets the scene; the hit point's projector coordinate comes from
+   ``rig.projector.project`` (distortion included); a ray toward the projector tests for
+   shadow. Lambertian ``albedo * cos(incidence)``, plus a Gaussian specular lobe around
+   the mirror direction for shiny parts, plus ambient light ``ambient * albedo``.
+3. Camera: ``supersample`` x ``supersample`` rays per pixel (and ``edge_supersample``
+   per side on pixels that straddle an edge), Gaussian defocus (discrete normalised
+   kernel), exposure, shot noise (Gaussian approximation of Poisson, in electrons) and
+   read noise, quantisation to ``bit_depth`` bits, saturation.
+
+The geometry (steps 2 and the sample weights) does not depend on the pattern: it is
+computed once per scan and reused for every image.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+from scipy.special import ndtr
+
+from ..patterns import pattern_stack
+from ..scan import GrayGroup, PhaseGroup, Scan, ScanManifest
+from ._kernels import accumulate_samples
+from .presets import VirtualRig
+
+__all__ = ["Truth", "Geometry", "default_groups", "render_scan", "trace_geometry",
+           "projector_profile", "projector_profile_exact", "render_images"]
+
+#: Distance (mm) behind the scene from which rays start.
+_RAY_START_MM = 500.0
+#: A shadow ray counts as blocked if it meets the scene this much before the point (mm).
+_SHADOW_EPS_MM = 1e-6
+#: Tabulation step of the projector's emitted-intensity profile (projector pixels).
+PROFILE_STEP_PX = 1.0 / 32.0
+#: Normals of one pixel's samples differing by more than this flag the pixel as an edge.
+_EDGE_NORMAL_COS = np.cos(np.radians(15.0))
+#: Camera pixels traced at once (bounds memory).
+_CHUNK_PIXELS = 65536
+#: Projector coordinate standing for "no surface" (far outside any panel).
+_FAR = -1e9
+
+
+@dataclass(frozen=True, eq=False)
+class Truth:
+    """Ground truth of a rendered scan (at camera pixel centres).
+
+    Attributes
+    ----------
+    xyz_world : (rows, cols, 3) ndarray of float, mm
+        Surface point seen by each pixel centre where it is lit by the projector and
+        visible; NaN elsewhere.
+    u_p, v_p : (rows, cols) ndarray of float
+        True projector coordinates (projector pixels, DESIGN convention, distortion
+        included) of that point; NaN where not lit.
+    lit : (rows, cols) ndarray of bool
+        The pixel centre sees a surface point inside the projector's panel, facing the
+        projector and not shadowed.
+    features : dict
+        Scene features (see each scene's ``features()``) plus their camera images, e.g.
+        ``circle_centres_world`` (n, 3) and ``circle_centres_px`` (n, 2).
+    visible : (rows, cols) ndarray of bool
+        The pixel centre sees a surface (lit or not).
+    part : (rows, cols) ndarray of int
+        Scene part seen by the pixel centre (-1: nothing).
+    """
+
+    xyz_world: np.ndarray
+    u_p: np.ndarray
+    v_p: np.ndarray
+    lit: np.ndarray
+    features: dict = field(default_factory=dict)
+    visible: np.ndarray | None = None
+    part: np.ndarray | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.lit.shape)
+
+
+def default_groups(vrig: VirtualRig, *, axes: Sequence[str] = ("u", "v"),
+                   periods_u: Sequence[int] = (1, 8, 64), periods_v: Sequence[int] = (1, 8, 48),
+                   steps: int = 4, exposure: float = 1.0) -> tuple[PhaseGroup, ...]:
+    """The default fringe groups: ``steps``-step phase shifting at each period count of
+    the ladder, for each axis in ``axes`` (u: vertical fringes, v: horizontal).
+
+    ``vrig`` is accepted so that presets can change their ladders later; today both
+    presets use the same one (>= 6 projector pixels per period on the fast rig).
+    """
+    del vrig
+    groups = []
+    for axis in axes:
+        if axis not in ("u", "v"):
+            raise ValueError(f"axes must contain 'u' and/or 'v', got {axis!r}")
+        for p in (periods_u if axis == "u" else periods_v):
+            groups.append(PhaseGroup(axis=axis, periods=int(p), steps=int(steps),
+                                     exposure=float(exposure)))
+    if not groups:
+        raise ValueError("no groups: give at least one axis and one period count")
+    return tuple(groups)
+
+
+# --------------------------------------------------------------------------- projector
+def _emitted(levels: np.ndarray, vrig: VirtualRig) -> np.ndarray:
+    """Pattern levels (integers) -> relative emitted intensity per projector pixel."""
+    ph = vrig.photometry
+    top = float(2 ** ph.projector_bit_depth - 1)
+    p = np.asarray(levels, dtype=float) / top
+    return ph.black_level + (1.0 - ph.black_level) * p ** ph.gamma
+
+
+def projector_profile_exact(pixel_values, x, *, sigma: float) -> np.ndarray:
+    """Emitted intensity at projector coordinate(s) ``x`` of a 1-D row of square pixels.
+
+    Pixel j covers ``[j - 0.5, j + 0.5]`` with intensity ``pixel_values[j]`` (0 outside
+    the panel), convolved with a Gaussian of standard deviation ``sigma`` (projector px):
+    ``sum_j I_j (Phi((x - j + 0.5) / sigma) - Phi((x - j - 0.5) / sigma))``.
+
+    Parameters
+    ----------
+    pixel_values : (L,) array of float.  x : array of float, any shape.  sigma : float >= 0.
+    """
+    vals = np.asarray(pixel_values, dtype=float)
+    x = np.asarray(x, dtype=float)
+    L = vals.shape[0]
+    if sigma <= 0:
+        j = np.floor(x + 0.5).astype(np.int64)
+        inside = (j >= 0) & (j < L)
+        return np.where(inside, vals[np.clip(j, 0, L - 1)], 0.0)
+    reach = int(np.ceil(8.0 * sigma)) + 1
+    n = np.floor(x + 0.5).astype(np.int64)
+    out = np.zeros(x.shape)
+    for m in range(-reach, reach + 1):
+        j = n + m
+        inside = (j >= 0) & (j < L)
+        v = np.where(inside, vals[np.clip(j, 0, L - 1)], 0.0)
+        out += v * (ndtr((x - j + 0.5) / sigma) - ndtr((x - j - 0.5) / sigma))
+    return out
+
+
+def _kernel_reach(sigma: float) -> int:
+    """Neighbouring pixels whose blurred light reaches a point (Gaussian tail < 1e-9)."""
+    return int(np.ceil(6.0 * sigma)) + 1 if sigma > 0 else 0
+
+
+def projector_profile(pixel_values, *, sigma: float):
+    """Tabulate :func:`projector_profile_exact` every :data:`PROFILE_STEP_PX` for linear
+    interpolation (the renderer's projector).
+
+    The table's points sit at ``x = n - 0.5 + f / 32`` (f = 0..31), so each point sees
+    the pixel kernel at one of 32 phases: the table is a small matrix product of the
+    pixel values with those kernel values (the Gaussian is cut at 6 sigma, < 1e-9).
+
+    Returns
+    -------
+    profile : (K,) ndarray, values at ``x_first + k * PROFILE_STEP_PX``.
+    x_first : float.
+    """
+    vals = np.asarray(pixel_values, dtype=float)
+    L = vals.shape[0]
+    per = int(round(1.0 / PROFILE_STEP_PX))
+    reach = _kernel_reach(sigma)
+    pad = reach + 2
+    ext = np.zeros(L + 2 * pad + 2 * reach)
+    ext[pad + reach:pad + reach + L] = vals
+    m = np.arange(-reach, reach + 1)
+    f = np.arange(per)
+    d = -m[:, None] - 0.5 + f[None, :] / per          # x - j for x in cell n, j = n + m
+    if sigma > 0:
+        kt = ndtr((d + 0.5) / sigma) - ndtr((d - 0.5) / sigma)
+    else:
+        kt = ((d >= -0.5) & (d < 0.5)).astype(float)
+    win = np.lib.stride_tricks.sliding_window_view(ext, 2 * reach + 1)[:L + 2 * pad]
+    prof = (win @ kt).ravel()
+    return prof, -pad - 0.5
+
+
+def _panel_window(x, length: int, sigma: float) -> np.ndarray:
+    """Blurred panel extent along one axis: 1 inside [-0.5, L - 0.5], 0 outside."""
+    x = np.asarray(x, dtype=float)
+    if sigma <= 0:
+        return ((x >= -0.5) & (x <= length - 0.5)).astype(float)
+    return ndtr((x + 0.5) / sigma) - ndtr((x - length + 0.5) / sigma)
+
+
+# --------------------------------------------------------------------------- geometry
+@dataclass(frozen=True, eq=False)
+class Geometry:
+    """Pattern-independent part of a rendering (computed once per scene and rig).
+
+    Samples are pixel-major: pixel p owns samples ``[p * n, (p + 1) * n)``.
+
+    Attributes
+    ----------
+    shape : (rows, cols) of the camera image.
+    n1 : int, samples per pixel of the first pass (supersample**2).
+    cu1, cv1 : (rows * cols * n1,) projector coordinates of each sample.
+    wu1, wv1 : (rows * cols * n1,) float32, weight of each sample for u- and v-axis
+        patterns (8-bit DN at exposure 1 per unit emitted intensity, / n1, with the
+        blurred panel window of the other axis and the shadow/back-facing test applied).
+    ambient : (rows * cols,) float, ambient signal per pixel (DN at exposure 1).
+    edge_pixels : (F,) int, flat indices of the refined (edge) pixels.
+    n2, cu2, cv2, wu2, wv2 : the same for the refined pixels.
+    truth : Truth
+    """
+
+    shape: tuple[int, int]
+    n1: int
+    cu1: np.ndarray
+    cv1: np.ndarray
+    wu1: np.ndarray
+    wv1: np.ndarray
+    ambient: np.ndarray
+    edge_pixels: np.ndarray
+    n2: int
+    cu2: np.ndarray
+    cv2: np.ndarray
+    wu2: np.ndarray
+    wv2: np.ndarray
+    truth: Truth
+
+
+def _sub_offsets(n: int) -> np.ndarray:
+    """Midpoint-rule offsets of n x n samples over a unit pixel, (n * n, 2) as (du, dv)."""
+    a = (np.arange(n) + 0.5) / n - 0.5
+    dv, du = np.meshgrid(a, a, indexing="ij")
+    return np.stack([du.ravel(), dv.ravel()], axis=1)
+
+
+def _trace(vrig: VirtualRig, scene, u: np.ndarray, v: np.ndarray) -> dict:
+    """Trace camera rays through pixels (u, v) (N,) into the scene and shade them."""
+    cam, proj = vrig.camera, vrig.projector
+    ph = vrig.photometry
+    origin, d_cam = cam.backproject(u, v)
+    o = origin - _RAY_START_MM * d_cam
+    hits = scene.intersect(o, d_cam)
+    hit = hits.hit
+    n = len(u)
+    P = np.full((n, 3), np.nan)
+    P[hit] = o[hit] + hits.t[hit, None] * d_cam
+    up = np.full(n, np.nan)
+    vp = np.full(n, np.nan)
+    up[hit], vp[hit] = proj.project(P[hit])
+    d_proj = proj.axis_world
+    to_proj = -d_proj
+    cos_i = np.where(hit, hits.normal @ to_proj, 0.0)
+    facing = hit & (cos_i > 0)
+    unshadowed = np.zeros(n, dtype=bool)
+    idx = np.nonzero(facing)[0]
+    if idx.size:
+        h2 = scene.intersect(P[idx] - _RAY_START_MM * d_proj, d_proj)
+        unshadowed[idx] = h2.t >= _RAY_START_MM - _SHADOW_EPS_MM
+    lit_geom = facing & unshadowed
+    # specular lobe around the half vector of illumination and view
+    h_vec = to_proj - d_cam
+    h_vec = h_vec / np.linalg.norm(h_vec)
+    ang = np.arccos(np.clip(hits.normal @ h_vec, -1.0, 1.0))
+    lobe = np.exp(-0.5 * (ang / np.radians(ph.specular_sigma_deg)) ** 2)
+    refl = hits.albedo * np.clip(cos_i, 0.0, None) + hits.specular * lobe
+    w = np.where(lit_geom, ph.dn_per_radiance * refl, 0.0)
+    W, H = proj.intrinsics.width, proj.intrinsics.height
+    sig = ph.projector_blur_px
+    win_u = np.where(hit, _panel_window(np.nan_to_num(up, nan=-1e9), W, sig), 0.0)
+    win_v = np.where(hit, _panel_window(np.nan_to_num(vp, nan=-1e9), H, sig), 0.0)
+    in_panel = hit & (up >= -0.5) & (up <= W - 0.5) & (vp >= -0.5) & (vp <= H - 0.5)
+    return {
+        "hit": hit, "P": P, "up": up, "vp": vp, "normal": hits.normal, "part": hits.part,
+        "albedo": hits.albedo, "specular": hits.specular, "lit": lit_geom & in_panel,
+        "wu": w * win_v, "wv": w * win_u,
+        "ambient": np.where(hit, ph.dn_per_radiance * ph.ambient * hits.albedo, 0.0),
+    }
+
+
+def _trace_samples(vrig, scene, pix_u, pix_v, n_side):
+    """Trace n_side x n_side samples of each listed pixel exactly, in chunks.
+
+    Returns per-sample (pixel-major) cu, cv, wu, wv (weights already / n_side**2) and
+    the ambient signal per pixel.
+    """
+    offs = _sub_offsets(n_side)
+    ns = len(offs)
+    npx = len(pix_u)
+    cu = np.empty(npx * ns)
+    cv = np.empty(npx * ns)
+    wu = np.empty(npx * ns, dtype=np.float32)
+    wv = np.empty(npx * ns, dtype=np.float32)
+    amb = np.empty(npx)
+    chunk = max(1, _CHUNK_PIXELS * 4 // ns)
+    for a in range(0, npx, chunk):
+        b = min(npx, a + chunk)
+        su = (pix_u[a:b, None] + offs[None, :, 0]).ravel()
+        sv = (pix_v[a:b, None] + offs[None, :, 1]).ravel()
+        tr = _trace(vrig, scene, su, sv)
+        sl = slice(a * ns, b * ns)
+        cu[sl] = np.nan_to_num(tr["up"], nan=_FAR)
+        cv[sl] = np.nan_to_num(tr["vp"], nan=_FAR)
+        wu[sl] = tr["wu"] / ns
+        wv[sl] = tr["wv"] / ns
+        amb[a:b] = tr["ambient"].reshape(-1, ns).mean(axis=1)
+    return cu, cv, wu, wv, amb
+
+
+def _trace_centres(vrig, scene, rows, cols):
+    """Exact trace of every pixel centre, in chunks; arrays shaped (rows, cols[, 3])."""
+    vv, uu = np.mgrid[0:rows, 0:cols]
+    pu = uu.ravel().astype(float)
+    pv = vv.ravel().astype(float)
+    parts = []
+    chunk = _CHUNK_PIXELS * 4
+    for a in range(0, pu.size, chunk):
+        parts.append(_trace(vrig, scene, pu[a:a + chunk], pv[a:a + chunk]))
+    out = {}
+    for key in parts[0]:
+        arr = np.concatenate([p[key] for p in parts])
+        out[key] = arr.reshape((rows, cols) + arr.shape[1:])
+    return out
+
+
+def _smooth_mask(c: dict) -> np.ndarray:
+    """(rows, cols) bool: the pixel and its 8 neighbours see one smooth surface patch
+    (same part, lit state and albedo, normals within 15 deg), away from the border."""
+    rows, cols = c["part"].shape
+    ok = np.zeros((rows, cols), dtype=bool)
+    ok[1:-1, 1:-1] = True
+    centre = (slice(1, rows - 1), slice(1, cols - 1))
+    nrm = c["normal"]
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr == 0 and dc == 0:
+                continue
+            nb = (slice(1 + dr, rows - 1 + dr), slice(1 + dc, cols - 1 + dc))
+            same = ((c["part"][nb] == c["part"][centre]) & (c["lit"][nb] == c["lit"][centre])
+                    & (c["albedo"][nb] == c["albedo"][centre])
+                    & (c["specular"][nb] == c["specular"][centre])
+                    & ((np.einsum("ijk,ijk->ij", nrm[nb], nrm[centre]) >= _EDGE_NORMAL_COS)
+                       | ~c["hit"][centre]))
+            ok[centre] &= same
+    return ok
+
+
+def _interp_samples(f: np.ndarray, n_side: int) -> np.ndarray:
+    """Values of a smooth per-pixel field at the n_side x n_side sample offsets of each
+    pixel, from the quadratic through its 3 x 3 neighbourhood (central differences).
+
+    Returns (rows, cols, n_side**2); border pixels get the centre value (they are never
+    used: the smooth mask excludes them).
+    """
+    rows, cols = f.shape
+    out = np.repeat(f[:, :, None], n_side * n_side, axis=2)
+    c = f[1:-1, 1:-1]
+    fx = 0.5 * (f[1:-1, 2:] - f[1:-1, :-2])
+    fy = 0.5 * (f[2:, 1:-1] - f[:-2, 1:-1])
+    fxx = f[1:-1, 2:] - 2 * c + f[1:-1, :-2]
+    fyy = f[2:, 1:-1] - 2 * c + f[:-2, 1:-1]
+    fxy = 0.25 * (f[2:, 2:] - f[2:, :-2] - f[:-2, 2:] + f[:-2, :-2])
+    for s, (a, b) in enumerate(_sub_offsets(n_side)):
+        out[1:-1, 1:-1, s] = c + a * fx + b * fy + 0.5 * a * a * fxx + 0.5 * b * b * fyy \
+            + a * b * fxy
+    return out
+
+
+def trace_geometry(vrig: VirtualRig, scene, *, exact: bool = False) -> Geometry:
+    """Trace the camera's pixels into ``scene`` once: everything but the pattern.
+
+    Pixel centres are traced exactly. Where a pixel and its 8 neighbours see one smooth
+    surface patch, its ``supersample``**2 sub-samples take their projector coordinates
+    and weights from the quadratic through the 9 centres (error bounded by a test);
+    every other pixel (edges of markers, balls, shadows, walls, silhouettes, and the
+    image border) traces ``edge_supersample``**2 sub-samples exactly
+    (``supersample``**2 if that is larger). ``exact=True`` traces every sub-sample.
+    """
+    ph = vrig.photometry
+    rows, cols = vrig.camera.intrinsics.shape
+    S = int(ph.supersample)
+    E = max(int(ph.edge_supersample), S)
+    c = _trace_centres(vrig, scene, rows, cols)
+    smooth = _smooth_mask(c) if not exact else np.zeros((rows, cols), dtype=bool)
+    n1 = S * S
+    if S == 1:
+        cu1 = np.nan_to_num(c["up"], nan=_FAR).ravel()
+        cv1 = np.nan_to_num(c["vp"], nan=_FAR).ravel()
+        wu1 = c["wu"].astype(np.float32).ravel()
+        wv1 = c["wv"].astype(np.float32).ravel()
+        amb = c["ambient"].ravel().copy()
+    else:
+        cu1 = _interp_samples(np.nan_to_num(c["up"], nan=_FAR), S).ravel()
+        cv1 = _interp_samples(np.nan_to_num(c["vp"], nan=_FAR), S).ravel()
+        wu1 = (_interp_samples(c["wu"], S) / n1).astype(np.float32).ravel()
+        wv1 = (_interp_samples(c["wv"], S) / n1).astype(np.float32).ravel()
+        amb = c["ambient"].ravel().copy()
+    edge_pix = np.flatnonzero(~smooth)
+    vv, uu = np.divmod(edge_pix, cols)
+    cu2, cv2, wu2, wv2, amb2 = _trace_samples(vrig, scene, uu.astype(float), vv.astype(float),
+                                              E)
+    amb[edge_pix] = amb2
+    lit = c["lit"]
+    truth = Truth(xyz_world=np.where(lit[..., None], c["P"], np.nan),
+                  u_p=np.where(lit, c["up"], np.nan), v_p=np.where(lit, c["vp"], np.nan),
+                  lit=lit, features=_features(vrig, scene), visible=c["hit"],
+                  part=c["part"].astype(np.int32))
+    return Geometry(shape=(rows, cols), n1=n1, cu1=cu1, cv1=cv1, wu1=wu1, wv1=wv1,
+                    ambient=amb, edge_pixels=edge_pix, n2=E * E, cu2=cu2, cv2=cv2, wu2=wu2,
+                    wv2=wv2, truth=truth)
+
+
+def _features(vrig: VirtualRig, scene) -> dict:
+    """Scene features plus their images in the camera (and projector) pixels."""
+    f = dict(scene.features())
+    cam, proj = vrig.camera, vrig.projector
+    for key, name in (("circle_centres_world", "circle_centres"),
+                      ("apexes_world", "apexes"), ("center_world", "center")):
+        if key in f:
+            pts = np.asarray(f[key], dtype=float)
+            u, v = cam.project(pts)
+            f[f"{name}_px"] = np.stack([u, v], axis=-1)
+            up, vp = proj.project(pts)
+            f[f"{name}_proj_px"] = np.stack([up, vp], axis=-1)
+    if "circle_centres_px" in f:
+        rows, cols = cam.intrinsics.shape
+        r_px = 0.5 * float(f["diameter_mm"]) * cam.intrinsics.m / cam.intrinsics.du
+        c = f["circle_centres_px"]
+        f["circle_in_image"] = ((c[:, 0] >= r_px + 2) & (c[:, 0] <= cols - 3 - r_px)
+                                & (c[:, 1] >= r_px + 2) & (c[:, 1] <= rows - 3 - r_px))
+    return f
+
+
+# --------------------------------------------------------------------------- images
+def _line(group, vrig: VirtualRig, k: int | None, *, level: str | None = None) -> np.ndarray:
+    """The 1-D pattern levels (along the group's axis) of image k of a group."""
+    proj = vrig.projector.intrinsics
+    top = 2 ** vrig.photometry.projector_bit_depth - 1
+    if level is not None:
+        n = proj.width
+        return np.full(n, top if level == "white" else 0)
+    stack = pattern_stack(group, width=proj.width, height=proj.height,
+                          bit_depth=vrig.photometry.projector_bit_depth)
+    return stack[k, 0, :] if group.axis == "u" else stack[k, :, 0]
+
+
+def _integrate(geom: Geometry, vrig: VirtualRig, axis: str, levels: np.ndarray) -> np.ndarray:
+    """Noise-free camera signal (8-bit DN at exposure 1), (rows, cols), before blur."""
+    ph = vrig.photometry
+    prof, x_first = projector_profile(_emitted(levels, vrig), sigma=ph.projector_blur_px)
+    inv = 1.0 / PROFILE_STEP_PX
+    npx = geom.shape[0] * geom.shape[1]
+    out = np.empty(npx)
+    if axis == "u":
+        accumulate_samples(geom.cu1, geom.wu1, geom.n1, prof, x_first, inv, out)
+    else:
+        accumulate_samples(geom.cv1, geom.wv1, geom.n1, prof, x_first, inv, out)
+    if geom.edge_pixels.size:
+        o2 = np.empty(geom.edge_pixels.size)
+        if axis == "u":
+            accumulate_samples(geom.cu2, geom.wu2, geom.n2, prof, x_first, inv, o2)
+        else:
+            accumulate_samples(geom.cv2, geom.wv2, geom.n2, prof, x_first, inv, o2)
+        out[geom.edge_pixels] = o2
+    out += geom.ambient
+    return out.reshape(geom.shape)
+
+
+def _sensor(signal_dn8: np.ndarray, vrig: VirtualRig, exposure: float,
+            rng: np.random.Generator) -> np.ndarray:
+    """Camera: defocus, exposure, shot + read noise, quantisation, saturation."""
+    ph = vrig.photometry
+    s = signal_dn8 * exposure
+    if ph.camera_blur_px > 0:
+        s = gaussian_filter(s, ph.camera_blur_px, mode="nearest", truncate=4.0)
+    e_per_dn8 = ph.full_well_e / 255.0
+    electrons = s * e_per_dn8
+    sigma_e = np.sqrt(np.maximum(electrons, 0.0) + ph.read_noise_e ** 2)
+    electrons = electrons + sigma_e * rng.standard_normal(electrons.shape)
+    full = ph.full_scale_dn
+    dn = np.clip(np.round(electrons / ph.full_well_e * full), 0, full)
+    if ph.bit_depth == 8:
+        return dn.astype(np.uint8)
+    q = dn.astype(np.uint16)
+    if ph.bit_depth == 12:  # MSB-aligned, top bits replicated: 4095 -> 65535
+        return (q << 4) | (q >> 8)
+    return q
+
+
+def render_images(geom: Geometry, vrig: VirtualRig, axis: str, levels: np.ndarray, *,
+                  exposure: float, rng: np.random.Generator) -> np.ndarray:
+    """One camera image of a 1-D projector pattern ``levels`` along ``axis``."""
+    return _sensor(_integrate(geom, vrig, axis, levels), vrig, exposure, rng)
+
+
+def render_scan(vrig: VirtualRig, scene, groups, *, white: bool = True, black: bool = True,
+                exposures: Sequence[float] = (1.0,), seed: int = 0,
+                progress: Callable | None = None) -> tuple[Scan, Truth]:
+    """Render a scan of ``scene`` with the virtual rig.
+
+    Parameters
+    ----------
+    vrig : VirtualRig
+    scene : a scene of :mod:`telefringe.simulate.scenes`.
+    groups : sequence of PhaseGroup / GrayGroup (image names are ignored).
+    white, black : bool
+        Also capture a full-on and a full-off frame (at the first exposure).
+    exposures : sequence of float
+        Relative exposure times; each group is repeated once per exposure with its
+        ``exposure`` field multiplied (an HDR set).
+    seed : int
+        Seeds the camera noise.
+    progress : callable ``progress(done, total)``, optional.
+
+    Returns
+    -------
+    scan : telefringe.scan.Scan
+        Images uint8 (bit_depth 8) or uint16, ``max_value`` the stored saturation value.
+    truth : Truth
+    """
+    groups = tuple(groups)
+    if not groups:
+        raise ValueError("groups is empty: give at least one pattern group")
+    exposures = tuple(float(e) for e in exposures)
+    if not exposures or not all(np.isfinite(e) and e > 0 for e in exposures):
+        raise ValueError(f"exposures must be positive numbers, got {exposures!r}")
+    if len(set(exposures)) != len(exposures):
+        raise ValueError("exposures must differ from each other")
+    for g in groups:
+        if not isinstance(g, PhaseGroup | GrayGroup):
+            raise ValueError(f"unsupported group {g!r}")
+    out_groups = []
+    for g in groups:
+        for e in exposures:
+            out_groups.append(replace(g, exposure=g.exposure * e, images=()))
+    n_images = sum(g.count for g in out_groups) + int(white) + int(black)
+    total = n_images + 4
+    done = [0]
+
+    def tick(n=1):
+        done[0] += n
+        if progress is not None:
+            progress(done[0], total)
+
+    geom = trace_geometry(vrig, scene)
+    tick(4)
+    rng = np.random.default_rng(seed)
+    stacks = []
+    for g in out_groups:
+        imgs = []
+        for k in range(g.count):
+            imgs.append(render_images(geom, vrig, g.axis, _line(g, vrig, k),
+                                      exposure=g.exposure, rng=rng))
+            tick()
+        stacks.append(np.stack(imgs))
+    w_img = b_img = None
+    if white:
+        w_img = render_images(geom, vrig, "u", _line(None, vrig, None, level="white"),
+                              exposure=exposures[0], rng=rng)
+        tick()
+    if black:
+        b_img = render_images(geom, vrig, "u", _line(None, vrig, None, level="black"),
+                              exposure=exposures[0], rng=rng)
+        tick()
+    proj = vrig.projector.intrinsics
+    man = ScanManifest(projector_width=proj.width, projector_height=proj.height,
+                       groups=tuple(out_groups), white=None, black=None)
+    scan = Scan(manifest=man, stacks=tuple(stacks), white=w_img, black=b_img,
+                max_value=vrig.photometry.max_value, source=f"virtual rig {vrig.name!r}",
+                meta={"simulated": True, "rig": vrig.name, "seed": int(seed),
+                      "scene": geom.truth.features.get("type", type(scene).__name__)})
+    return scan, geom.truth
