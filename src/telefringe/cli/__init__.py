@@ -51,17 +51,20 @@ _register_all()
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point: run the app; user errors end with one line and exit status 2."""
+    from rich.markup import escape
+
     from ..io.errors import InputError
 
     if argv is None:
         argv = sys.argv[1:]
     state.debug = "--debug" in argv
     try:
-        app(args=argv, prog_name="telefringe", standalone_mode=False)
+        rv = app(args=argv, prog_name="telefringe", standalone_mode=False)
     except InputError as exc:
         if state.debug:
             raise
-        err_console.print(f"[bold red]error:[/bold red] {exc}", soft_wrap=True)
+        # escaped: messages quote fields like "[du, dv]", which are not rich markup
+        err_console.print(f"[bold red]error:[/bold red] {escape(str(exc))}", soft_wrap=True)
         return 2
     except typer.Exit as exc:
         return exc.exit_code
@@ -71,16 +74,24 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         err_console.print("interrupted: nothing was written")
         return 130
-    except Exception as exc:  # click usage errors
-        import click
-
-        if isinstance(exc, click.exceptions.ClickException):
+    except OSError as exc:  # a file system problem (permission, disk full): no traceback
+        if state.debug:
+            raise
+        err_console.print(f"[bold red]error:[/bold red] {escape(str(exc))}", soft_wrap=True)
+        return 1
+    except Exception as exc:
+        # click usage errors (typer >= 0.16 vendors click: no `import click`)
+        if callable(getattr(exc, "show", None)) and isinstance(getattr(exc, "exit_code", None),
+                                                                int):
             exc.show()
             return exc.exit_code
-        if isinstance(exc, click.exceptions.Exit):
-            return exc.exit_code
         raise
-    return 0
+    # with standalone_mode=False, click returns the exit code of a typer.Exit (typer turns
+    # a KeyboardInterrupt inside a command into Exit(130))
+    code = rv if isinstance(rv, int) and not isinstance(rv, bool) else 0
+    if code == 130:
+        err_console.print("interrupted: nothing was written")
+    return code
 
 
 if __name__ == "__main__":
