@@ -1,0 +1,453 @@
+"""Decode a scan: projector coordinates (u_p, v_p) seen by every camera pixel.
+
+Per axis: N-step wrapped phase of each group (HDR sets fused per pixel), masks
+(saturation, low modulation, shadow), the projector nonlinearity learned from the
+ladder and removed (:mod:`telefringe.gamma`), temporal unwrapping
+(:mod:`telefringe.unwrap`), and the projector coordinate ``x = Phi L / (2 pi p)``.
+
+Uncertainty: each group's phase has ``sigma_phi = sqrt(2/N) sigma_I / B`` with
+``sigma_I`` from the :class:`~telefringe.phase.NoiseModel` at the background level, i.e.
+``sigma_x = sigma_phi L / (2 pi p)`` in projector pixels. Once the orders are fixed, every
+unwrapped group measures the same x, so the groups are combined with inverse-variance
+weights; ``sigma_u_p = (sum_j sigma_x_j^-2)^-1/2``. (With the 1/8/64 ladder the finest
+group carries 98% of the weight.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .gamma import PhaseErrorFit, PhaseErrorModel, fit_phase_errors
+from .phase import (
+    NoiseModel,
+    WrappedPhase,
+    fuse_hdr,
+    phase_sigma,
+    saturation_mask,
+    wrapped_phase,
+)
+from .scan import GrayGroup, PhaseGroup, Scan
+from .unwrap import (
+    LadderError,
+    Unwrapped,
+    heterodyne_plan,
+    number_theoretic_candidates,
+    unwrap_gray,
+    unwrap_heterodyne,
+    unwrap_hierarchical,
+    unwrap_number_theoretic,
+    unwrap_step,
+)
+
+__all__ = [
+    "DecodeError",
+    "AxisCoordinates",
+    "ProjectorCoordinates",
+    "METHODS",
+    "decode",
+    "decode_axis",
+    "choose_method",
+]
+
+METHODS = ("auto", "hierarchical", "heterodyne", "number-theoretic", "gray")
+TWO_PI = 2.0 * np.pi
+
+
+class DecodeError(ValueError):
+    """The scan cannot be decoded as asked (message says why)."""
+
+
+class LadderDecodeError(DecodeError, LadderError):
+    """The fringe periods of an axis cannot give its absolute phase."""
+
+
+@dataclass(frozen=True)
+class AxisCoordinates:
+    """Decoding result of one projector axis (arrays (rows, cols)).
+
+    Attributes
+    ----------
+    axis : "u" or "v".  method : str, the unwrapping method used.
+    coordinate : float64, projector pixels, NaN where invalid.
+    sigma : float64, projector pixels (standard uncertainty; NaN where invalid).
+    valid : bool.
+    modulation, background : float64, DN, of the finest group (at the exposure used).
+    saturated : bool, every exposure of some group saturates.
+    low_modulation : bool, some group's modulation is below the threshold.
+    shadow : bool, the projector does not light the pixel.
+    order_reliable : bool, the unwrapping trusts the fringe order.
+    exposure : float64, exposure used for the finest group.
+    periods : tuple of int, the groups used (increasing).
+    phase_errors : PhaseErrorFit or None, the nonlinearity correction applied.
+    """
+
+    axis: str
+    method: str
+    coordinate: np.ndarray
+    sigma: np.ndarray
+    valid: np.ndarray
+    modulation: np.ndarray
+    background: np.ndarray
+    saturated: np.ndarray
+    low_modulation: np.ndarray
+    shadow: np.ndarray
+    order_reliable: np.ndarray
+    exposure: np.ndarray
+    periods: tuple[int, ...]
+    phase_errors: PhaseErrorFit | None = None
+
+
+@dataclass(frozen=True)
+class ProjectorCoordinates:
+    """Projector coordinates seen by each camera pixel (arrays (rows, cols)).
+
+    Attributes
+    ----------
+    u_p : float64, projector column (pixels), NaN where invalid.
+    v_p : float64 or None (no v fringes), projector row (pixels), NaN where invalid.
+    mask : bool, u_p valid (and v_p valid where present).
+    modulation : float64, DN, modulation B of the finest u group (or v when there is no u).
+    sigma_u_p, sigma_v_p : float64 (or None), projector pixels, standard uncertainty from
+        the noise model (NaN where invalid).
+    saturated, shadow, order_reliable : bool diagnostics (any axis).
+    background : float64, DN, background A of the finest u (else v) group.
+    axes : dict axis -> AxisCoordinates, the full per-axis results.
+    """
+
+    u_p: np.ndarray | None
+    v_p: np.ndarray | None
+    mask: np.ndarray
+    modulation: np.ndarray
+    sigma_u_p: np.ndarray | None
+    sigma_v_p: np.ndarray | None
+    saturated: np.ndarray
+    shadow: np.ndarray
+    order_reliable: np.ndarray
+    background: np.ndarray
+    axes: dict = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------- helpers
+@dataclass
+class _Level:
+    periods: int
+    steps: int
+    offset: float
+    wrapped: WrappedPhase
+    saturated: np.ndarray
+    exposure: np.ndarray  # per pixel, exposure used
+    exposure_index: np.ndarray
+
+
+def _levels(scan: Scan, axis: str) -> list[_Level]:
+    """Wrapped phase of every phase group on ``axis``, HDR sets fused (sorted by periods)."""
+    sets: dict[int, list[tuple[PhaseGroup, np.ndarray]]] = {}
+    for g, stack in zip(scan.manifest.groups, scan.stacks, strict=True):
+        if isinstance(g, PhaseGroup) and g.axis == axis:
+            sets.setdefault(int(g.periods), []).append((g, stack))
+    out = []
+    for periods in sorted(sets):
+        members = sets[periods]
+        g0 = members[0][0]
+        for g, _ in members[1:]:
+            if (g.steps, g.offset) != (g0.steps, g0.offset):
+                raise DecodeError(f"{scan.source}: two phase groups with {periods} periods on "
+                                  f"axis {axis} differ in steps/offset ({g0.steps}, "
+                                  f"{g0.offset}) vs ({g.steps}, {g.offset}); give them "
+                                  "different periods or the same steps and offset")
+        exps = [float(g.exposure) for g, _ in members]
+        if len(set(exps)) != len(exps):
+            raise DecodeError(f"{scan.source}: two phase groups with {periods} periods on axis "
+                              f"{axis} have the same exposure")
+        wps, sats = [], []
+        for g, stack in members:
+            _check_stack_values(scan, g, stack)
+            wps.append(wrapped_phase(stack, steps=int(g.steps), offset=float(g.offset)))
+            sats.append(saturation_mask(stack, max_value=scan.max_value))
+        if len(members) == 1:
+            shape = wps[0].phase.shape
+            out.append(_Level(periods, int(g0.steps), float(g0.offset), wps[0], sats[0],
+                              np.full(shape, exps[0]), np.zeros(shape, dtype=np.int64)))
+        else:
+            fused = fuse_hdr(wps, sats, exps)
+            out.append(_Level(periods, int(g0.steps), float(g0.offset), fused.wrapped,
+                              fused.saturated, fused.exposure, fused.exposure_index))
+    return out
+
+
+def _check_stack_values(scan: Scan, group, stack: np.ndarray) -> None:
+    if stack.dtype.kind not in "uif":
+        raise DecodeError(f"{scan.source}: group {group.key} has images of type {stack.dtype}")
+    if stack.dtype.kind == "f" and not np.all(np.isfinite(stack)):
+        raise DecodeError(f"{scan.source}: group {group.key} has NaN or infinite values")
+
+
+def _gray_groups(scan: Scan, axis: str) -> list[tuple[GrayGroup, np.ndarray]]:
+    return [(g, s) for g, s in zip(scan.manifest.groups, scan.stacks, strict=True)
+            if isinstance(g, GrayGroup) and g.axis == axis]
+
+
+def choose_method(periods, *, length: int, gray_bits: int | None = None,
+                  method: str = "auto") -> str:
+    """The unwrapping method for an axis with these phase-group periods.
+
+    ``auto``: hierarchical when a one-period group exists, else Gray code when a Gray
+    group fixes one of the groups, else heterodyne, else number-theoretic. Raises
+    :class:`LadderDecodeError` (a ValueError) when the asked (or any) method cannot
+    unwrap the finest group over the whole projector.
+    """
+    per = sorted(int(p) for p in periods)
+    if method not in METHODS:
+        raise DecodeError(f"unknown method {method!r}; use one of {', '.join(METHODS)}")
+    if not per:
+        raise LadderDecodeError("no phase group on this axis")
+
+    def ok(m):
+        if m == "hierarchical":
+            return per[0] == 1
+        if m == "gray":
+            return gray_bits is not None and (2 ** gray_bits) in per
+        if m == "heterodyne":
+            try:
+                heterodyne_plan(per)
+                return True
+            except LadderError:
+                return False
+        if m == "number-theoretic":
+            if len(per) < 2:
+                return False
+            from .unwrap import _projected_separation
+
+            cands = number_theoretic_candidates(per, length=length)
+            return _projected_separation(cands, np.asarray(per, float)) > 1e-9
+        return False
+
+    if method != "auto":
+        if not ok(method):
+            raise LadderDecodeError(f"periods {per} cannot be unwrapped by the {method} "
+                                    "method over the whole projector")
+        return method
+    for m in ("hierarchical", "gray", "heterodyne", "number-theoretic"):
+        if ok(m):
+            return m
+    raise LadderDecodeError(
+        f"periods {per} cannot unwrap the finest group over the whole projector: add a "
+        "one-period group (ladder such as 1, 8, 64), a Gray code, or use periods whose "
+        "heterodyne beat is 1 / that are coprime")
+
+
+def _unwrap(method: str, levels: list[_Level], phases: list[np.ndarray], *, length: int,
+            max_residual: float, gray=None, gray_threshold=None, gray_min_contrast=None):
+    """Absolute phases for the levels used by ``method``; returns (indices, Unwrapped)."""
+    per = [lv.periods for lv in levels]
+    if method == "hierarchical":
+        return list(range(len(levels))), unwrap_hierarchical(
+            phases, per, length=length, max_residual=max_residual)
+    if method == "heterodyne":
+        return list(range(len(levels))), unwrap_heterodyne(
+            phases, per, length=length, max_residual=max_residual)
+    if method == "number-theoretic":
+        return list(range(len(levels))), unwrap_number_theoretic(
+            phases, per, length=length, max_fraction=max_residual / np.pi)
+    # gray: the group with 2**bits periods, then finer groups hierarchically
+    g, stack = gray
+    base = per.index(2 ** g.bits)
+    res = unwrap_gray(phases[base], stack, gray_threshold, bits=g.bits,
+                      complementary=g.complementary, length=length,
+                      min_contrast=gray_min_contrast)
+    used = [base]
+    absolute = [res.phases[0]]
+    worst = res.residual.copy()
+    reliable = res.reliable.copy()
+    for j in range(base + 1, len(levels)):
+        ab, r = unwrap_step(phases[j], per[j], absolute[-1], per[used[-1]])
+        used.append(j)
+        absolute.append(ab)
+        q = np.abs(r) / max_residual
+        reliable &= q <= 1.0
+        np.maximum(worst, q, out=worst)
+    return used, Unwrapped(tuple(absolute), reliable, worst)
+
+
+def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction: bool = True,
+                min_modulation: float | None = None, noise: NoiseModel | None = None,
+                max_residual: float = np.pi / 2, gray_min_contrast: float | None = None,
+                ) -> AxisCoordinates:
+    """Decode one projector axis of a scan (see :func:`decode` for the parameters).
+
+    Returns
+    -------
+    AxisCoordinates
+    """
+    if axis not in ("u", "v"):
+        raise DecodeError(f"axis must be 'u' or 'v', got {axis!r}")
+    levels = _levels(scan, axis)
+    if not levels:
+        raise DecodeError(f"{scan.source}: no phase group on axis {axis}")
+    length = scan.manifest.axis_length(axis)
+    scale = float(scan.max_value) / 255.0
+    noise = NoiseModel().scaled(scale) if noise is None else noise
+    min_mod = 0.02 * float(scan.max_value) if min_modulation is None else float(min_modulation)
+    if not (np.isfinite(min_mod) and min_mod >= 0):
+        raise DecodeError(f"min_modulation must be finite and >= 0, got {min_modulation!r}")
+    grays = _gray_groups(scan, axis)
+    gray = None
+    if grays:
+        gray = max(grays, key=lambda gs: (gs[0].complementary, gs[0].exposure))
+    method = choose_method([lv.periods for lv in levels], length=length,
+                           gray_bits=gray[0].bits if gray else None, method=method)
+
+    shape = levels[0].wrapped.phase.shape
+    saturated = np.zeros(shape, dtype=bool)
+    low_mod = np.zeros(shape, dtype=bool)
+    for lv in levels:
+        saturated |= lv.saturated
+        low_mod |= ~(lv.wrapped.modulation >= min_mod)
+    if saturated.all():
+        raise DecodeError(f"{scan.source}: every pixel is saturated on axis {axis} (reduce "
+                          "the exposure or the projector brightness)")
+    if scan.white is not None and scan.black is not None:
+        shadow = (scan.white.astype(np.float64) - scan.black.astype(np.float64)) < 2 * min_mod
+    else:
+        shadow = np.ones(shape, dtype=bool)
+        for lv in levels:
+            shadow &= ~(lv.wrapped.modulation >= min_mod)
+    good = ~saturated & ~low_mod & ~shadow
+    sigmas = [phase_sigma(lv.wrapped.modulation, lv.wrapped.background, steps=lv.steps,
+                          noise=noise) for lv in levels]
+    phases = [lv.wrapped.phase for lv in levels]
+
+    gray_threshold = gray_min_contrast_arr = None
+    if gray is not None and method == "gray":
+        g, _ = gray
+        if scan.white is not None and scan.black is not None:
+            gray_threshold = 0.5 * (scan.white.astype(np.float64) + scan.black.astype(np.float64))
+        else:
+            base = [lv.periods for lv in levels].index(2 ** g.bits)
+            gray_threshold = levels[base].wrapped.background
+        if gray_min_contrast is None:
+            gray_min_contrast_arr = 3.0 * np.sqrt(noise.variance(gray_threshold))
+        else:
+            gray_min_contrast_arr = float(gray_min_contrast)
+
+    def run(phs):
+        return _unwrap(method, levels, phs, length=length, max_residual=max_residual,
+                       gray=gray, gray_threshold=gray_threshold,
+                       gray_min_contrast=gray_min_contrast_arr)
+
+    fit = None
+    used, unw = None, None
+    if gamma_correction and len(levels) >= 2 and good.any():
+        per = [lv.periods for lv in levels]
+        ratios_integer = all(b % a == 0 for a, b in zip(sorted(per)[:-1], sorted(per)[1:],
+                                                         strict=True))
+        absolute = None
+        if not ratios_integer:
+            used, unw = run(phases)
+            absolute = [None] * len(levels)
+            for j, ab in zip(used, unw.phases, strict=True):
+                absolute[j] = ab
+            learn = good & unw.reliable
+        else:
+            learn = good
+        fit = fit_phase_errors(phases, per, steps=[lv.steps for lv in levels], mask=learn,
+                               sigmas=sigmas, absolute=absolute)
+        sigmas = [s * np.abs(1.0 - m.slope(p))
+                  for m, p, s in zip(fit.models, phases, sigmas, strict=True)]
+        phases = [m.correct(p) for m, p in zip(fit.models, phases, strict=True)]
+    elif len(levels) >= 2 or gamma_correction:
+        fit = PhaseErrorFit(tuple(PhaseErrorModel.zero(lv.periods) for lv in levels), 0.0, 0)
+    used, unw = run(phases)
+
+    # inverse-variance combination of the unwrapped groups (projector pixels)
+    num = np.zeros(shape)
+    den = np.zeros(shape)
+    for j, ab in zip(used, unw.phases, strict=True):
+        p = levels[j].periods
+        x = ab * (length / (TWO_PI * p))
+        sx = sigmas[j] * (length / (TWO_PI * p))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = np.where(np.isfinite(sx) & (sx > 0), 1.0 / (sx * sx), 0.0)
+        num += w * x
+        den += w
+    with np.errstate(divide="ignore", invalid="ignore"):
+        coord = num / den
+        sigma = 1.0 / np.sqrt(den)
+    valid = good & unw.reliable & np.isfinite(coord) & (den > 0)
+    valid &= (coord >= -0.5) & (coord <= length - 0.5)
+    coord = np.where(valid, coord, np.nan)
+    sigma = np.where(valid, sigma, np.nan)
+    fine = levels[used[-1]]
+    return AxisCoordinates(
+        axis=axis, method=method, coordinate=coord, sigma=sigma, valid=valid,
+        modulation=fine.wrapped.modulation, background=fine.wrapped.background,
+        saturated=saturated, low_modulation=low_mod, shadow=shadow,
+        order_reliable=unw.reliable, exposure=fine.exposure,
+        periods=tuple(levels[j].periods for j in used), phase_errors=fit)
+
+
+def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
+           min_modulation: float | None = None, noise: NoiseModel | None = None,
+           max_residual: float = np.pi / 2,
+           gray_min_contrast: float | None = None) -> ProjectorCoordinates:
+    """Projector coordinates of every camera pixel of a scan.
+
+    Parameters
+    ----------
+    scan : telefringe.scan.Scan, any number of phase groups per axis (a ladder of
+        periods), HDR sets (same group, several exposures), Gray-code groups, optional
+        white/black frames; 8- or 16-bit (or float) images.
+    method : "auto" | "hierarchical" | "heterodyne" | "number-theoretic" | "gray".
+    gamma_correction : bool, learn and remove the projector nonlinearity's periodic
+        phase error from the ladder (needs >= 2 groups on the axis; no effect otherwise).
+    min_modulation : float, DN; pixels whose modulation is below it in any group are
+        invalid. Default ``0.02 * scan.max_value`` (5.1 DN for 8 bit).
+    noise : NoiseModel for the uncertainty (and Gray-code contrast); default
+        ``NoiseModel()`` scaled by ``max_value / 255``.
+    max_residual : float, rad, order-consistency tolerance of the unwrapping (pi/2).
+    gray_min_contrast : float, DN, contrast below which a Gray bit counts as unread
+        (default 3 sigma_I at the threshold level).
+
+    Returns
+    -------
+    ProjectorCoordinates
+
+    Raises
+    ------
+    DecodeError (a ValueError)
+        Inconsistent groups, a period ladder that cannot unwrap the finest group, every
+        pixel saturated.
+    """
+    if not isinstance(scan, Scan):
+        raise DecodeError(f"decode needs a telefringe.scan.Scan, got {type(scan).__name__}")
+    axes_present = [a for a in ("u", "v")
+                    if any(isinstance(g, PhaseGroup) and g.axis == a
+                           for g in scan.manifest.groups)]
+    if not axes_present:
+        raise DecodeError(f"{scan.source}: the scan has no phase group")
+    res = {a: decode_axis(scan, a, method=method, gamma_correction=gamma_correction,
+                          min_modulation=min_modulation, noise=noise,
+                          max_residual=max_residual, gray_min_contrast=gray_min_contrast)
+           for a in axes_present}
+    u = res.get("u")
+    v = res.get("v")
+    first = u if u is not None else v
+    mask = np.ones(first.valid.shape, dtype=bool)
+    saturated = np.zeros_like(mask)
+    shadow = np.zeros_like(mask)
+    reliable = np.ones_like(mask)
+    for r in res.values():
+        mask &= r.valid
+        saturated |= r.saturated
+        shadow |= r.shadow
+        reliable &= r.order_reliable
+    return ProjectorCoordinates(
+        u_p=None if u is None else u.coordinate,
+        v_p=None if v is None else v.coordinate,
+        mask=mask, modulation=first.modulation,
+        sigma_u_p=None if u is None else u.sigma,
+        sigma_v_p=None if v is None else v.sigma,
+        saturated=saturated, shadow=shadow, order_reliable=reliable,
+        background=first.background, axes=res)
