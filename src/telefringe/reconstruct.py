@@ -1,0 +1,777 @@
+"""Per-pixel triangulation of a telecentric camera + projector rig (the paper's Eq. 8).
+
+For a telecentric camera the world line seen by a camera pixel is fixed: undistort the
+pixel once, and every point it can see is ``X(s) = o + s d`` with ``o`` on the plane of
+zero depth and ``d`` the camera's viewing direction (unit, world frame). Eq. 8 of the
+paper (the camera's two rows and the projector's first row: three linear equations in
+X, Y, Z) is the same as intersecting that line with the projector's plane of constant
+undistorted ``xu_P``. Along the line the projector's *undistorted* sensor coordinates are
+affine in ``s``::
+
+    xu_P(s) = A_u + B_u s,   yu_P(s) = A_v + B_v s
+
+(``A`` per pixel, ``B`` constant per rig), so the projector's distortion is handled
+exactly by solving, per pixel, the one-unknown problem
+
+    u_P(s) = u_P observed                         (u fringes only: Newton root)
+    min_s  (u_P(s) - u_P)^2 / sigma_u^2 + (v_P(s) - v_P)^2 / sigma_v^2   (both axes)
+
+where ``u_P(s), v_P(s)`` are the projector's distorted pixels of ``X(s)``. With u fringes
+only, the projector's second coordinate comes from the geometry itself (no need to
+ignore it as the paper's Eq. 8 does). With both axes, this is the maximum-likelihood
+solution of the four equations (camera rows exact: the camera pixel is known; the two
+projector rows weighted by the decoder's uncertainties), and the distance between the
+observed and predicted projector pixel is kept as a per-point consistency check
+(``residual``, projector px): a wrong fringe order or a bad calibration shows up there.
+
+Uncertainty: the only noisy input is the decoded projector coordinate. Its standard
+uncertainty moves the point along the camera line only, by ``sigma_s = sigma_u / |du_P/ds|``
+(or ``1 / sqrt((du_P/ds)^2 / sigma_u^2 + (dv_P/ds)^2 / sigma_v^2)`` with both axes), so
+the covariance of a point is ``sigma_s^2 d d^T`` and ``sigma_xyz = |d| sigma_s``.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from .model import Rig, TelecentricDevice, undistort_sensor
+
+__all__ = [
+    "TriangulationError",
+    "PointCloud",
+    "Triangulator",
+    "HeightMap",
+    "triangulate",
+    "triangulate_pixels",
+    "height_map",
+    "FLAG_NO_PHASE",
+    "FLAG_INCONSISTENT",
+    "FLAG_OUTSIDE",
+    "FLAG_NOT_CONVERGED",
+    "FLAG_UNCERTAIN",
+]
+
+#: ``PointCloud.flags`` bits (0 = valid point).
+FLAG_NO_PHASE = 1  #: the decoder's mask is false, or u_P (or a needed v_P) is not finite
+FLAG_INCONSISTENT = 2  #: |observed - predicted| projector pixel above ``max_residual``
+FLAG_OUTSIDE = 4  #: the solution falls outside the projector's image
+FLAG_NOT_CONVERGED = 8  #: the per-pixel solve did not converge
+FLAG_UNCERTAIN = 16  #: sigma_z above ``max_sigma_z``
+
+_TOL_S = 1e-12  # mm, convergence of the line parameter
+_MAX_ITER = 30
+
+
+class TriangulationError(ValueError):
+    """The rig or the coordinates cannot be triangulated (degenerate geometry, shapes)."""
+
+
+def _readonly(a):
+    if a is not None:
+        a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class PointCloud:
+    """An organised point cloud: one point per camera pixel.
+
+    Attributes
+    ----------
+    xyz : (rows, cols, 3) ndarray of float64
+        World coordinates in mm; NaN where ``mask`` is false.
+    mask : (rows, cols) ndarray of bool
+        True for valid points.
+    sigma_line : (rows, cols) ndarray of float64
+        Standard uncertainty (mm) of the point along its camera line, from the decoder's
+        ``sigma_u_p`` (and ``sigma_v_p``); NaN where invalid or where the decoder gave no
+        uncertainty. The covariance of a point is ``sigma_line**2 * outer(direction,
+        direction)``: the errors of X, Y and Z are fully correlated (see ``sigma_xyz``,
+        ``sigma_z``).
+    residual : (rows, cols) ndarray of float64 or None
+        Distance (projector px) between the observed and the predicted projector pixel
+        when both fringe axes were used; None with u fringes only.
+    flags : (rows, cols) ndarray of uint8
+        Why a point is invalid (bit set of ``FLAG_*``; 0 for valid points).
+    direction : (3,) ndarray of float64
+        The camera's unit viewing direction in the world frame.
+    """
+
+    xyz: np.ndarray
+    mask: np.ndarray
+    sigma_line: np.ndarray
+    residual: np.ndarray | None
+    flags: np.ndarray
+    direction: np.ndarray
+
+    def __post_init__(self):
+        for name in ("xyz", "mask", "sigma_line", "residual", "flags", "direction"):
+            _readonly(getattr(self, name))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, cols) of the camera grid."""
+        return self.mask.shape
+
+    @property
+    def x(self) -> np.ndarray:
+        return self.xyz[..., 0]
+
+    @property
+    def y(self) -> np.ndarray:
+        return self.xyz[..., 1]
+
+    @property
+    def z(self) -> np.ndarray:
+        return self.xyz[..., 2]
+
+    @property
+    def sigma_xyz(self) -> np.ndarray:
+        """(rows, cols, 3) standard uncertainties of X, Y, Z (mm), NaN where invalid."""
+        return self.sigma_line[..., None] * np.abs(self.direction)
+
+    @property
+    def sigma_x(self) -> np.ndarray:
+        """(rows, cols) standard uncertainty of X (mm)."""
+        return self.sigma_line * abs(self.direction[0])
+
+    @property
+    def sigma_y(self) -> np.ndarray:
+        """(rows, cols) standard uncertainty of Y (mm)."""
+        return self.sigma_line * abs(self.direction[1])
+
+    @property
+    def sigma_z(self) -> np.ndarray:
+        """(rows, cols) standard uncertainty of Z (mm)."""
+        return self.sigma_line * abs(self.direction[2])
+
+    @property
+    def count(self) -> int:
+        """Number of valid points."""
+        return int(np.count_nonzero(self.mask))
+
+    def points(self) -> np.ndarray:
+        """The valid points as an (n, 3) float64 array (mm), row-major pixel order."""
+        return self.xyz[self.mask]
+
+    @classmethod
+    def from_xyz(cls, xyz, *, sigma_z=None, direction=(0.0, 0.0, -1.0)) -> PointCloud:
+        """A cloud from an (rows, cols, 3) array (NaN = invalid), e.g. read from points.npz.
+
+        ``sigma_z`` (rows, cols), if given, is taken as the uncertainty along a camera
+        line of unit ``direction`` (default: straight down, -z).
+        """
+        xyz = np.array(xyz, dtype=np.float64)
+        if xyz.ndim != 3 or xyz.shape[2] != 3:
+            raise TriangulationError(f"xyz must have shape (rows, cols, 3), got {xyz.shape}")
+        d = np.asarray(direction, dtype=np.float64).reshape(3)
+        nd = float(np.linalg.norm(d))
+        if not np.isfinite(nd) or nd == 0 or abs(d[2]) < 1e-12 * nd:
+            raise TriangulationError("direction must be a finite vector with a z component")
+        d = d / nd
+        mask = np.all(np.isfinite(xyz), axis=2)
+        xyz[~mask] = np.nan
+        if sigma_z is None:
+            sigma_line = np.full(mask.shape, np.nan)
+        else:
+            sz = np.asarray(sigma_z, dtype=np.float64)
+            if sz.shape != mask.shape:
+                raise TriangulationError(f"sigma_z must have shape {mask.shape}, got {sz.shape}")
+            sigma_line = np.where(mask, sz / abs(d[2]), np.nan)
+        flags = np.where(mask, 0, FLAG_NO_PHASE).astype(np.uint8)
+        return cls(xyz, mask, sigma_line, None, flags, d)
+
+
+# --------------------------------------------------------------------------------------
+# The per-rig precomputation
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class Triangulator:
+    """Everything about the rig that does not depend on the scan, per camera pixel.
+
+    Build it once per rig and image shape with :meth:`for_shape` (or for arbitrary
+    camera pixel positions with :meth:`for_pixels`) and call :meth:`triangulate` for
+    every scan.
+
+    Attributes
+    ----------
+    rig : Rig
+    shape : tuple of int
+        Shape of the camera pixel array the triangulator was built for.
+    a, b : ndarray of float64, shape ``shape``
+        Each pixel's line ``X(s) = a R_c[0] + b R_c[1] + s d`` (mm) with ``R_c`` the
+        camera's ``R_dev_world`` and ``d = R_c[2]``.
+    coef : (2, 3) ndarray of float64
+        Projector undistorted sensor mm along the line: ``[xu_P, yu_P] = coef @ [a, b, s]
+        + m_P t_P``.
+    """
+
+    rig: Rig
+    shape: tuple
+    a: np.ndarray
+    b: np.ndarray
+    coef: np.ndarray
+
+    @classmethod
+    def for_shape(cls, rig: Rig, shape) -> Triangulator:
+        """Triangulator for a full camera image of ``shape`` (rows, cols) pixels.
+
+        Raises :class:`TriangulationError` when ``shape`` does not match the camera's
+        declared image size (when it declares one).
+        """
+        rows, cols = (int(n) for n in shape)
+        if rows <= 0 or cols <= 0:
+            raise TriangulationError(f"shape must be positive (rows, cols), got {shape}")
+        k = rig.camera.intrinsics
+        if k.width and k.height and (k.height, k.width) != (rows, cols):
+            raise TriangulationError(
+                f"the camera images are {rows} x {cols} (rows x cols) but the rig's camera "
+                f"is {k.height} x {k.width}: the rig does not belong to this scan")
+        v, u = np.mgrid[0:rows, 0:cols].astype(np.float64)
+        return cls.for_pixels(rig, u, v)
+
+    @classmethod
+    def for_pixels(cls, rig: Rig, u, v) -> Triangulator:
+        """Triangulator for camera pixels at (u, v) (any shape, observed/distorted px)."""
+        u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64),
+                                   np.asarray(v, dtype=np.float64))
+        cam: TelecentricDevice = rig.camera
+        prj: TelecentricDevice = rig.projector
+        xd, yd = cam.pixel_to_sensor(u, v)
+        xu, yu = undistort_sensor(xd, yd, *cam.intrinsics.distortion)
+        mc = cam.intrinsics.m
+        a = np.ascontiguousarray(xu / mc - cam.t_dev[0])
+        b = np.ascontiguousarray(yu / mc - cam.t_dev[1])
+        Rc = cam.R_dev_world
+        basis = np.stack([Rc[0], Rc[1], Rc[2]], axis=1)  # (3, 3): columns = Rc0, Rc1, d
+        coef = prj.intrinsics.m * (prj.R_dev_world[:2] @ basis)
+        return cls(rig, tuple(u.shape), _readonly(a), _readonly(b), _readonly(coef))
+
+    @property
+    def direction(self) -> np.ndarray:
+        """Camera viewing direction (3,), unit, world frame."""
+        return self.rig.camera.R_dev_world[2].copy()
+
+    def line_points(self, s) -> np.ndarray:
+        """World points (..., 3) mm at line parameter ``s`` (broadcast with ``shape``)."""
+        Rc = self.rig.camera.R_dev_world
+        s = np.asarray(s, dtype=np.float64)
+        return (self.a[..., None] * Rc[0] + self.b[..., None] * Rc[1]
+                + s[..., None] * Rc[2])
+
+    def triangulate(self, coords, *, max_residual: float | None = 1.0,
+                    max_sigma_z: float | None = None, use_v_p: bool = True,
+                    check_bounds: bool = True) -> PointCloud:
+        """Triangulate decoded projector coordinates; see :func:`triangulate`."""
+        up = np.asarray(coords.u_p)
+        if up.shape != self.shape:
+            raise TriangulationError(
+                f"u_p has shape {up.shape} but the triangulator was built for {self.shape}")
+        mask_in = getattr(coords, "mask", None)
+        mask_in = (np.ones(self.shape, dtype=bool) if mask_in is None
+                   else np.asarray(mask_in, dtype=bool))
+        vp = getattr(coords, "v_p", None)
+        su = getattr(coords, "sigma_u_p", None)
+        sv = getattr(coords, "sigma_v_p", None)
+        has_v = vp is not None
+        for name, arr in (("mask", mask_in), ("v_p", vp), ("sigma_u_p", su),
+                          ("sigma_v_p", sv)):
+            if arr is not None and np.shape(arr) != self.shape:
+                raise TriangulationError(
+                    f"{name} has shape {np.shape(arr)}, expected {self.shape} like u_p")
+        combine = has_v and use_v_p
+        Bu, Bv = float(self.coef[0, 2]), float(self.coef[1, 2])
+        m_p = self.rig.projector.intrinsics.m
+        # sensitivity of the projector's undistorted sensor coordinate to depth, relative
+        # to a device looking straight along it (1): below 1 % there is no triangulation
+        if combine:
+            if np.hypot(Bu, Bv) < 1e-2 * m_p:
+                raise TriangulationError(
+                    "the projector's image does not move with depth along the camera's "
+                    "lines (camera and projector axes are parallel): cannot triangulate")
+        elif abs(Bu) < 1e-2 * m_p:
+            raise TriangulationError(
+                "u_p barely changes with depth for this rig (the projector's u axis is "
+                "nearly perpendicular to the camera's axis); capture v fringes and "
+                "triangulate with v_p")
+        ki = self.rig.projector.intrinsics
+        W = float(ki.width) if check_bounds and ki.width else np.inf
+        H = float(ki.height) if check_bounds and ki.height else np.inf
+        n = int(np.prod(self.shape))
+
+        def flat(x, fill=np.nan):
+            if x is None:
+                return np.full(n, fill)
+            x = np.asarray(x)
+            if x.dtype not in (np.float32, np.float64, np.bool_):
+                x = x.astype(np.float64)
+            return np.ascontiguousarray(x).reshape(n)
+
+        up_f = flat(up)
+        # v_p absent: u_p stands in (never read as v_p: has_v is false)
+        vp_f = flat(vp) if has_v else up_f
+        xyz_planar = np.empty((3,) + self.shape)
+        x, y, z = (xyz_planar[k].reshape(n) for k in range(3))
+        sig = np.empty(n)
+        res = np.empty(n)
+        flags = np.empty(n, dtype=np.uint8)
+        Rc = np.ascontiguousarray(self.rig.camera.R_dev_world)
+        kp = np.array((ki.u0, ki.v0, ki.du, ki.dv, ki.k1, ki.s1, ki.s2, W, H,
+                       self.coef[0, 0], self.coef[0, 1], Bu, self.coef[1, 0], self.coef[1, 1],
+                       Bv, m_p * self.rig.projector.t_dev[0],
+                       m_p * self.rig.projector.t_dev[1]), dtype=np.float64)
+        args = (self.a.reshape(n), self.b.reshape(n), up_f, vp_f, flat(su), flat(sv),
+                flat(mask_in.astype(bool, copy=False)), has_v, combine, kp, Rc,
+                np.inf if max_residual is None else float(max_residual),
+                np.inf if max_sigma_z is None else float(max_sigma_z), x, y, z, sig, res,
+                flags)
+        _solve_fast(*args)
+        if np.any(flags & FLAG_NOT_CONVERGED):
+            _solve_slow(*args)
+        shape = self.shape
+        # (rows, cols, 3) view of planar storage: the kernel writes x, y, z planes
+        xyz = np.moveaxis(xyz_planar, 0, -1)
+        return PointCloud(xyz, (flags == 0).reshape(shape), sig.reshape(shape),
+                          res.reshape(shape) if has_v else None, flags.reshape(shape),
+                          self.direction)
+
+
+# The per-pixel solve. Along a camera line the projector's undistorted sensor coordinates
+# are affine in s, so its distorted ones are exact cubics, xd(s) = cu0 + cu1 s + cu2 s^2 +
+# cu3 s^3 and yd(s) = cv0 + ... . With u fringes only, s is the root of xd(s) = xd_obs
+# (Newton); with both axes, s minimises wu (xd - xd_obs)^2 + wv (yd - yd_obs)^2 (Newton on
+# the derivative, exact second derivative). Both start from the linear solution (exact
+# without distortion). The fast pass takes a fixed number of steps with no branches, so
+# that the loop vectorises, and estimates the error left from Newton's quadratic
+# convergence (next step ~ |F'' / (2 F')| ds^2 for the equation F = 0 being solved);
+# pixels above the tolerance are solved again by the slow pass, which iterates.
+_N_FAST = 2
+_CHUNK = 16384
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _line_cubics(ai, bi, kp):  # pragma: no cover - numba
+    k1 = kp[4]
+    s1 = kp[5]
+    s2 = kp[6]
+    Bu = kp[11]
+    Bv = kp[14]
+    Au = kp[9] * ai + kp[10] * bi + kp[15]
+    Av = kp[12] * ai + kp[13] * bi + kp[16]
+    q2 = Bu * Bu + Bv * Bv
+    q0 = Au * Au + Av * Av
+    q1 = 2.0 * (Au * Bu + Av * Bv)
+    cu0 = Au + (k1 * Au + s1) * q0
+    cu1 = Bu + k1 * (Au * q1 + Bu * q0) + s1 * q1
+    cu2 = k1 * (Au * q2 + Bu * q1) + s1 * q2
+    cu3 = k1 * Bu * q2
+    cv0 = Av + (k1 * Av + s2) * q0
+    cv1 = Bv + k1 * (Av * q1 + Bv * q0) + s2 * q1
+    cv2 = k1 * (Av * q2 + Bv * q1) + s2 * q2
+    cv3 = k1 * Bv * q2
+    return cu0, cu1, cu2, cu3, cv0, cv1, cv2, cv3
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _start(c, xd_obs, yd_obs, wu, wv, combine):  # pragma: no cover - numba
+    cu0, cu1, cu2, cu3, cv0, cv1, cv2, cv3 = c
+    if combine:
+        return (wu * cu1 * (xd_obs - cu0) + wv * cv1 * (yd_obs - cv0)) / (
+            wu * cu1 * cu1 + wv * cv1 * cv1)
+    return (xd_obs - cu0) / cu1
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _newton_step(s, c, xd_obs, yd_obs, wu, wv, combine):  # pragma: no cover - numba
+    # returns the new s and the estimated error left after the step
+    cu0, cu1, cu2, cu3, cv0, cv1, cv2, cv3 = c
+    fu = ((cu3 * s + cu2) * s + cu1) * s + cu0 - xd_obs
+    gu = (3.0 * cu3 * s + 2.0 * cu2) * s + cu1
+    hu = 6.0 * cu3 * s + 2.0 * cu2
+    if combine:
+        fv = ((cv3 * s + cv2) * s + cv1) * s + cv0 - yd_obs
+        gv = (3.0 * cv3 * s + 2.0 * cv2) * s + cv1
+        hv = 6.0 * cv3 * s + 2.0 * cv2
+        F1 = wu * gu * fu + wv * gv * fv  # half the objective's derivative
+        F2 = wu * (gu * gu + fu * hu) + wv * (gv * gv + fv * hv)
+        F3 = wu * (3.0 * gu * hu + fu * 6.0 * cu3) + wv * (3.0 * gv * hv + fv * 6.0 * cv3)
+    else:
+        F1 = fu
+        F2 = gu
+        F3 = hu
+    r2 = 1.0 / F2
+    ds = F1 * r2
+    return s - ds, abs(0.5 * F3 * r2) * ds * ds
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _observe(i, up, vp, su, sv, mask, combine, kp):  # pragma: no cover - numba
+    u_obs = up[i]
+    v_obs = vp[i]
+    valid = mask[i] & (abs(u_obs) < np.inf)
+    if combine:
+        valid = valid & (abs(v_obs) < np.inf)
+    s_u = su[i]
+    s_v = sv[i]
+    # weights of the sensor-mm residuals: 1 / sigma^2 in px (equal without sigmas)
+    wu = (1.0 / (s_u * s_u) if s_u > 0.0 else 1.0) / (kp[2] * kp[2])
+    wv = (1.0 / (s_v * s_v) if s_v > 0.0 else 1.0) / (kp[3] * kp[3])
+    return u_obs, v_obs, valid, (u_obs - kp[0]) * kp[2], (v_obs - kp[1]) * kp[3], s_u, s_v, wu, wv
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, combine, kp,
+            Rc, max_res, max_sz, x, y, z, sig, res, flags):  # pragma: no cover - numba
+    cu0, cu1, cu2, cu3, cv0, cv1, cv2, cv3 = c
+    du = kp[2]
+    dv = kp[3]
+    xd = ((cu3 * s + cu2) * s + cu1) * s + cu0
+    yd = ((cv3 * s + cv2) * s + cv1) * s + cv0
+    Ju = ((3.0 * cu3 * s + 2.0 * cu2) * s + cu1) / du  # projector px per mm of line
+    Jv = ((3.0 * cv3 * s + 2.0 * cv2) * s + cv1) / dv
+    up_pred = kp[0] + xd / du
+    vp_pred = kp[1] + yd / dv
+    # residual: NaN where v_p is NaN, which passes the check below. Stored whatever
+    # has_v: a conditional store would stop the loop from vectorising
+    ru = up_pred - u_obs
+    rv = vp_pred - v_obs
+    r = np.sqrt(ru * ru + rv * rv) if has_v else 0.0
+    res[i] = r if (valid & has_v) else np.nan
+    if combine:
+        sg = 1.0 / np.sqrt(Ju * Ju / (s_u * s_u) + Jv * Jv / (s_v * s_v))
+    else:
+        sg = s_u / abs(Ju)
+    inside = ((up_pred >= -0.5) & (up_pred <= kp[7] - 0.5) & (vp_pred >= -0.5)
+              & (vp_pred <= kp[8] - 0.5))
+    f = (FLAG_INCONSISTENT * (r > max_res) + FLAG_OUTSIDE * (1 - inside)
+         + FLAG_NOT_CONVERGED * (1 - converged) + FLAG_UNCERTAIN * (sg * abs(Rc[2, 2]) > max_sz))
+    f = f if valid else FLAG_NO_PHASE
+    flags[i] = f
+    good = f == 0
+    sig[i] = sg if good else np.nan
+    x[i] = (ai * Rc[0, 0] + bi * Rc[1, 0] + s * Rc[2, 0]) if good else np.nan
+    y[i] = (ai * Rc[0, 1] + bi * Rc[1, 1] + s * Rc[2, 1]) if good else np.nan
+    z[i] = (ai * Rc[0, 2] + bi * Rc[1, 2] + s * Rc[2, 2]) if good else np.nan
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _solve_block(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max_sz,
+                 x, y, z, sig, res, flags):  # pragma: no cover - numba
+    # fixed steps, no data-dependent branches: LLVM vectorises this loop
+    for i in range(a.shape[0]):
+        u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv = _observe(
+            i, up, vp, su, sv, mask, combine, kp)
+        ai = a[i]
+        bi = b[i]
+        c = _line_cubics(ai, bi, kp)
+        s = _start(c, xd_obs, yd_obs, wu, wv, combine)
+        est = 0.0
+        for _ in range(_N_FAST):
+            s, est = _newton_step(s, c, xd_obs, yd_obs, wu, wv, combine)
+        converged = est <= _TOL_S * (1.0 + abs(s))
+        _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, combine, kp,
+                Rc, max_res, max_sz, x, y, z, sig, res, flags)
+
+
+@njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _solve_fast(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max_sz,
+                x, y, z, sig, res, flags):  # pragma: no cover - numba
+    n = a.shape[0]
+    for k in prange((n + _CHUNK - 1) // _CHUNK):
+        lo = k * _CHUNK
+        hi = min(lo + _CHUNK, n)
+        _solve_block(a[lo:hi], b[lo:hi], up[lo:hi], vp[lo:hi], su[lo:hi], sv[lo:hi],
+                     mask[lo:hi], has_v, combine, kp, Rc, max_res, max_sz, x[lo:hi],
+                     y[lo:hi], z[lo:hi], sig[lo:hi], res[lo:hi], flags[lo:hi])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _solve_slow(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max_sz,
+                x, y, z, sig, res, flags):  # pragma: no cover - numba
+    # the pixels the fast pass left unconverged: iterate
+    for i in range(a.shape[0]):
+        if not (flags[i] & FLAG_NOT_CONVERGED):
+            continue
+        u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv = _observe(
+            i, up, vp, su, sv, mask, combine, kp)
+        ai = a[i]
+        bi = b[i]
+        c = _line_cubics(ai, bi, kp)
+        s = _start(c, xd_obs, yd_obs, wu, wv, combine)
+        converged = False
+        for _ in range(_MAX_ITER):
+            s, est = _newton_step(s, c, xd_obs, yd_obs, wu, wv, combine)
+            if not np.isfinite(s):
+                break
+            if est <= _TOL_S * (1.0 + abs(s)):
+                converged = True
+                break
+        _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, combine, kp,
+                Rc, max_res, max_sz, x, y, z, sig, res, flags)
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_triangulator(rig: Rig, shape: tuple) -> Triangulator:
+    return Triangulator.for_shape(rig, shape)
+
+
+def triangulate(rig: Rig, coords, *, max_residual: float | None = 1.0,
+                max_sigma_z: float | None = None, use_v_p: bool = True,
+                check_bounds: bool = True) -> PointCloud:
+    """Triangulate decoded projector coordinates into an organised point cloud.
+
+    Parameters
+    ----------
+    rig : Rig
+        The calibrated rig (world frame: the calibration target's reference pose).
+    coords : object with attributes ``u_p``, ``v_p``, ``mask``, ``sigma_u_p``, ``sigma_v_p``
+        E.g. :class:`telefringe.decode.ProjectorCoordinates`. ``u_p`` (rows, cols)
+        projector columns (px) per camera pixel, NaN where invalid; ``v_p`` projector
+        rows (px) or None without horizontal fringes; ``mask`` (rows, cols) bool or None;
+        ``sigma_u_p`` / ``sigma_v_p`` standard uncertainties (projector px) or None
+        (then the uncertainties of the result are NaN and both axes weigh the same).
+    max_residual : float or None, keyword-only
+        With ``v_p``: points whose observed projector pixel is farther than this (projector
+        px) from the one predicted by the solution are invalid (``FLAG_INCONSISTENT``).
+        The default 1 px lets decoding noise and calibration error through and stops
+        fringe-order errors (one period is many projector pixels). None: no check.
+    max_sigma_z : float or None, keyword-only
+        Points with a larger standard uncertainty of Z (mm) are invalid.
+    use_v_p : bool, keyword-only
+        Combine ``v_p`` with ``u_p`` in the solution (default). When false, ``v_p`` is
+        used for the consistency check only.
+    check_bounds : bool, keyword-only
+        Flag solutions outside the projector's image (when the rig declares its size).
+
+    Returns
+    -------
+    PointCloud
+        ``xyz`` (rows, cols, 3) mm in the rig's world frame, NaN where invalid.
+
+    Notes
+    -----
+    The rig's per-pixel precomputation (:class:`Triangulator`) is cached for the last
+    few (rig, shape) pairs, so repeated calls with the same rig are fast.
+    """
+    shape = tuple(int(n) for n in np.shape(coords.u_p))
+    if len(shape) != 2:
+        raise TriangulationError(f"u_p must be a (rows, cols) array, got shape {shape}")
+    tri = _cached_triangulator(rig, shape)
+    return tri.triangulate(coords, max_residual=max_residual, max_sigma_z=max_sigma_z,
+                           use_v_p=use_v_p, check_bounds=check_bounds)
+
+
+@dataclass(frozen=True)
+class _Coords:
+    u_p: np.ndarray
+    v_p: np.ndarray | None
+    mask: np.ndarray | None
+    sigma_u_p: np.ndarray | None
+    sigma_v_p: np.ndarray | None
+
+
+def triangulate_pixels(rig: Rig, u_c, v_c, u_p, v_p=None, *, sigma_u_p=None, sigma_v_p=None,
+                       max_residual: float | None = None) -> PointCloud:
+    """Triangulate arbitrary (sub-pixel) camera pixels, e.g. marker centres.
+
+    Parameters
+    ----------
+    rig : Rig
+    u_c, v_c : (n,) array_like of float
+        Camera pixels (observed, distorted).
+    u_p, v_p : (n,) array_like of float
+        Projector pixels seen there (``v_p`` may be None).
+    sigma_u_p, sigma_v_p : (n,) array_like of float or None
+        Standard uncertainties of ``u_p`` / ``v_p`` (projector px).
+    max_residual : float or None
+        As in :func:`triangulate` (default: no check).
+
+    Returns
+    -------
+    PointCloud
+        With ``shape == (1, n)``; ``cloud.xyz[0]`` is the (n, 3) array of points.
+    """
+    u_c = np.atleast_1d(np.asarray(u_c, dtype=np.float64)).reshape(1, -1)
+    v_c = np.atleast_1d(np.asarray(v_c, dtype=np.float64)).reshape(1, -1)
+    if u_c.shape != v_c.shape:
+        raise TriangulationError("u_c and v_c must have the same length")
+
+    def row(x):
+        if x is None:
+            return None
+        x = np.atleast_1d(np.asarray(x, dtype=np.float64)).reshape(1, -1)
+        if x.shape != u_c.shape:
+            raise TriangulationError("all per-point arrays must have the same length")
+        return x
+
+    tri = Triangulator.for_pixels(rig, u_c, v_c)
+    c = _Coords(row(u_p), row(v_p), None, row(sigma_u_p), row(sigma_v_p))
+    return tri.triangulate(c, max_residual=max_residual, check_bounds=False)
+
+
+# --------------------------------------------------------------------------------------
+# Height map: the cloud resampled on a regular XY grid
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class HeightMap:
+    """Heights on a regular XY grid (north-up, like the camera image of the world frame).
+
+    Attributes
+    ----------
+    z : (H, W) ndarray of float32
+        Height (world z, mm) at ``x = x0 + j * pixel_mm``, ``y = y0 - i * pixel_mm`` for
+        row i and column j; NaN where there is no data.
+    x0, y0 : float
+        World x and y (mm) of the centre of pixel [0, 0] (the top-left one).
+    pixel_mm : float
+        Grid spacing (mm), the same along x and y.
+    sigma_z : (H, W) ndarray of float32 or None
+        Standard uncertainty of ``z`` (mm), interpolated like ``z``.
+    """
+
+    z: np.ndarray
+    x0: float
+    y0: float
+    pixel_mm: float
+    sigma_z: np.ndarray | None = None
+
+    def __post_init__(self):
+        _readonly(self.z)
+        _readonly(self.sigma_z)
+
+    @property
+    def x(self) -> np.ndarray:
+        """World x (mm) of each column, (W,)."""
+        return self.x0 + self.pixel_mm * np.arange(self.z.shape[1])
+
+    @property
+    def y(self) -> np.ndarray:
+        """World y (mm) of each row, (H,) (decreasing)."""
+        return self.y0 - self.pixel_mm * np.arange(self.z.shape[0])
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(left, right, bottom, top) in mm of the pixels' outer edges (for imshow)."""
+        h, w = self.z.shape
+        p = self.pixel_mm
+        return (self.x0 - p / 2, self.x0 + (w - 0.5) * p, self.y0 - (h - 0.5) * p,
+                self.y0 + p / 2)
+
+
+def height_map(cloud: PointCloud, *, pixel_mm: float | None = None,
+               max_pixels: int = 64_000_000) -> HeightMap:
+    """Resample an organised cloud on a regular XY grid.
+
+    Each 2 x 2 block of neighbouring camera pixels with four valid points is split into
+    two triangles; grid nodes inside a triangle's XY footprint get the linear
+    (barycentric) interpolation of its vertices' z (and sigma_z). Where triangles overlap
+    in XY (a surface seen from the side), the highest z wins, as seen from above. No
+    value is made up across invalid pixels.
+
+    Parameters
+    ----------
+    cloud : PointCloud
+    pixel_mm : float, optional
+        Grid spacing in mm. Default: the median spacing of neighbouring points along the
+        camera rows (the camera's footprint per pixel).
+    max_pixels : int
+        Refuse grids larger than this (a guard against a wrong ``pixel_mm``).
+
+    Returns
+    -------
+    HeightMap
+    """
+    xyz = cloud.xyz
+    mask = cloud.mask
+    if cloud.count < 3:
+        raise TriangulationError("the cloud has fewer than 3 valid points: no height map")
+    if pixel_mm is None:
+        dx = np.linalg.norm(np.diff(xyz[:, :, :2], axis=1), axis=2)
+        dx = dx[np.isfinite(dx)]
+        if dx.size == 0:
+            dx = np.linalg.norm(np.diff(xyz[:, :, :2], axis=0), axis=2)
+            dx = dx[np.isfinite(dx)]
+        if dx.size == 0:
+            raise TriangulationError("no two neighbouring valid points: give pixel_mm")
+        pixel_mm = float(np.median(dx))
+    pixel_mm = float(pixel_mm)
+    if not (np.isfinite(pixel_mm) and pixel_mm > 0):
+        raise TriangulationError(f"pixel_mm must be finite and > 0, got {pixel_mm!r}")
+    pts = xyz[mask]
+    xmin, ymin = pts[:, 0].min(), pts[:, 1].min()
+    xmax, ymax = pts[:, 0].max(), pts[:, 1].max()
+    x0 = np.floor(xmin / pixel_mm) * pixel_mm
+    y0 = np.ceil(ymax / pixel_mm) * pixel_mm
+    W = int(np.ceil((xmax - x0) / pixel_mm)) + 1
+    H = int(np.ceil((y0 - ymin) / pixel_mm)) + 1
+    if W * H > max_pixels:
+        raise TriangulationError(
+            f"a height map of {H} x {W} pixels at {pixel_mm} mm is too large")
+    sz = cloud.sigma_z
+    zmap = np.full((H, W), -np.inf)
+    smap = np.full((H, W), np.nan)
+    _raster_kernel(np.ascontiguousarray(xyz), np.ascontiguousarray(sz), float(x0), float(y0),
+                   pixel_mm, zmap, smap)
+    zmap[~np.isfinite(zmap)] = np.nan
+    has_sigma = bool(np.any(np.isfinite(sz)))
+    return HeightMap(zmap.astype(np.float32), float(x0), float(y0), pixel_mm,
+                     smap.astype(np.float32) if has_sigma else None)
+
+
+@njit(cache=True, nogil=True)
+def _raster_tri(xa, ya, za, sa, xb, yb, zb, sb, xc, yc, zc, sc, x0, y0, p,
+                zmap, smap):  # pragma: no cover - numba
+    # grid coordinates: column j = (x - x0) / p, row i = (y0 - y) / p
+    ja = (xa - x0) / p
+    ia = (y0 - ya) / p
+    jb = (xb - x0) / p
+    ib = (y0 - yb) / p
+    jc = (xc - x0) / p
+    ic = (y0 - yc) / p
+    det = (jb - ja) * (ic - ia) - (jc - ja) * (ib - ia)
+    if det == 0.0 or not np.isfinite(det):
+        return
+    H, W = zmap.shape
+    jlo = max(int(np.ceil(min(ja, jb, jc))), 0)
+    jhi = min(int(np.floor(max(ja, jb, jc))), W - 1)
+    ilo = max(int(np.ceil(min(ia, ib, ic))), 0)
+    ihi = min(int(np.floor(max(ia, ib, ic))), H - 1)
+    eps = 1e-12
+    for i in range(ilo, ihi + 1):
+        for j in range(jlo, jhi + 1):
+            # barycentric coordinates of node (i, j)
+            l1 = ((j - ja) * (ic - ia) - (jc - ja) * (i - ia)) / det
+            l2 = ((jb - ja) * (i - ia) - (j - ja) * (ib - ia)) / det
+            l0 = 1.0 - l1 - l2
+            if l0 < -eps or l1 < -eps or l2 < -eps:
+                continue
+            z = l0 * za + l1 * zb + l2 * zc
+            if z > zmap[i, j]:
+                zmap[i, j] = z
+                smap[i, j] = l0 * sa + l1 * sb + l2 * sc
+
+
+@njit(cache=True, nogil=True)
+def _raster_kernel(xyz, sz, x0, y0, p, zmap, smap):  # pragma: no cover - numba
+    rows, cols = xyz.shape[0], xyz.shape[1]
+    for r in range(rows - 1):
+        for c in range(cols - 1):
+            z00 = xyz[r, c, 2]
+            z01 = xyz[r, c + 1, 2]
+            z10 = xyz[r + 1, c, 2]
+            z11 = xyz[r + 1, c + 1, 2]
+            if not (np.isfinite(z00) and np.isfinite(z01) and np.isfinite(z10)
+                    and np.isfinite(z11)):
+                continue
+            _raster_tri(xyz[r, c, 0], xyz[r, c, 1], z00, sz[r, c],
+                        xyz[r, c + 1, 0], xyz[r, c + 1, 1], z01, sz[r, c + 1],
+                        xyz[r + 1, c + 1, 0], xyz[r + 1, c + 1, 1], z11, sz[r + 1, c + 1],
+                        x0, y0, p, zmap, smap)
+            _raster_tri(xyz[r, c, 0], xyz[r, c, 1], z00, sz[r, c],
+                        xyz[r + 1, c + 1, 0], xyz[r + 1, c + 1, 1], z11, sz[r + 1, c + 1],
+                        xyz[r + 1, c, 0], xyz[r + 1, c, 1], z10, sz[r + 1, c],
+                        x0, y0, p, zmap, smap)

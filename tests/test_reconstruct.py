@@ -1,0 +1,382 @@
+"""Triangulation against the true model: exact recovery, flags, uncertainty by Monte Carlo."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from telefringe.model import Intrinsics, Rig, TelecentricDevice, rotation_from_rotvec
+from telefringe.reconstruct import (
+    FLAG_INCONSISTENT,
+    FLAG_NO_PHASE,
+    FLAG_OUTSIDE,
+    FLAG_UNCERTAIN,
+    HeightMap,
+    PointCloud,
+    TriangulationError,
+    Triangulator,
+    height_map,
+    triangulate,
+    triangulate_pixels,
+)
+
+SHAPE = (96, 128)
+
+
+def make_rig(*, k1_p=3e-4, s1_p=5e-5, s2_p=-8e-5, k1_c=2e-3, s1_c=2e-4, s2_c=-1e-4,
+             angle_deg=25.0, shape=SHAPE) -> Rig:
+    """A small rig like the paper's: a camera looking down (-z), the projector tilted.
+
+    The camera sees about 4 x 3 mm; the distortions move the image corners by a few
+    tenths of a pixel (camera) and a few pixels (projector).
+    """
+    rows, cols = shape
+    # camera: device x = world x, device y = -world y (image v runs down), z = -world z
+    R_c = rotation_from_rotvec([0.01, -0.02, 0.03]) @ np.diag([1.0, -1.0, -1.0])
+    cam = TelecentricDevice(
+        Intrinsics(m=1.0, du=0.03, dv=0.03, u0=(cols - 1) / 2 + 1.3, v0=(rows - 1) / 2 - 0.7,
+                   k1=k1_c, s1=s1_c, s2=s2_c, width=cols, height=rows),
+        R_c, np.array([0.05, -0.02]))
+    a = np.radians(angle_deg)
+    # projector looks along (sin a, 0, -cos a): rotated about world y
+    R_p = rotation_from_rotvec([0.0, -a, 0.0]) @ np.diag([1.0, -1.0, -1.0])
+    R_p = rotation_from_rotvec([0.0, 0.0, 0.05]) @ R_p
+    prj = TelecentricDevice(
+        Intrinsics(m=0.5, du=0.0137, dv=0.0137, u0=400.0, v0=300.0, k1=k1_p, s1=s1_p,
+                   s2=s2_p, width=800, height=600),
+        R_p, np.array([0.3, -0.2]))
+    return Rig(cam, prj)
+
+
+@dataclass(frozen=True)
+class Coords:
+    u_p: np.ndarray
+    v_p: np.ndarray | None = None
+    mask: np.ndarray | None = None
+    sigma_u_p: np.ndarray | None = None
+    sigma_v_p: np.ndarray | None = None
+
+
+def surface_points(rig, shape=SHAPE, *, seed=0, depth=2.0):
+    """True points on each pixel's line at random depths (mm) and their projector pixels."""
+    tri = Triangulator.for_shape(rig, shape)
+    rng = np.random.default_rng(seed)
+    s = rng.uniform(-depth, depth, size=shape)
+    X = tri.line_points(s)
+    up, vp = rig.projector.project(X)
+    return X, up, vp
+
+
+def test_camera_looks_down():
+    rig = make_rig()
+    assert rig.camera.axis_world[2] < -0.99
+    ang = np.degrees(np.arccos(rig.camera.axis_world @ rig.projector.axis_world))
+    assert 20 < ang < 30
+
+
+@pytest.mark.parametrize("use_v", [False, True])
+def test_exact_recovery_without_noise(use_v):
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    sig = np.full(SHAPE, 0.02)
+    c = Coords(up, vp if use_v else None, None, sig, sig if use_v else None)
+    cloud = triangulate(rig, c)
+    assert cloud.count == X.shape[0] * X.shape[1]
+    assert np.max(np.abs(cloud.xyz - X)) < 1e-9
+    if use_v:
+        assert np.nanmax(cloud.residual) < 1e-9
+    else:
+        assert cloud.residual is None
+    assert cloud.xyz.shape == SHAPE + (3,)
+    assert np.all(cloud.flags == 0)
+
+
+def test_exact_recovery_strong_distortion():
+    # distortion strong enough that the fixed-step pass leaves pixels to the slow pass
+    rig = make_rig(k1_p=2e-2, s1_p=3e-3, s2_p=-3e-3)
+    X, up, vp = surface_points(rig, depth=6.0)
+    from telefringe import reconstruct as rec
+
+    tri = Triangulator.for_shape(rig, SHAPE)
+    calls = []
+    orig = rec._solve_slow
+
+    def spy(*args):
+        calls.append(1)
+        return orig(*args)
+
+    rec._solve_slow = spy
+    try:
+        cloud = tri.triangulate(Coords(up), check_bounds=False)
+        cloud2 = tri.triangulate(Coords(up, vp), check_bounds=False)
+    finally:
+        rec._solve_slow = orig
+    assert calls, "the slow pass was not exercised"
+    assert cloud.count == cloud2.count == X.shape[0] * X.shape[1]
+    assert np.max(np.abs(cloud.xyz - X)) < 1e-9
+    assert np.max(np.abs(cloud2.xyz - X)) < 1e-9
+
+
+def test_float32_and_integer_inputs():
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    cloud = triangulate(rig, Coords(up.astype(np.float32)))
+    # float32 rounding of u_p (~3e-5 px) moves the point by about that / |du_p/ds|
+    assert np.max(np.abs(cloud.xyz - X)) < 1e-5
+    cloud = triangulate(rig, Coords(np.round(up).astype(np.int32)))
+    assert cloud.count == up.size
+
+
+def test_mask_and_nan_are_invalid():
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    mask = np.ones(SHAPE, bool)
+    mask[10:20, 30:40] = False
+    up = up.copy()
+    up[50, 60] = np.nan
+    vp = vp.copy()
+    vp[70, 80] = np.nan
+    cloud = triangulate(rig, Coords(up, vp, mask))
+    assert not cloud.mask[10:20, 30:40].any()
+    assert np.all(np.isnan(cloud.xyz[10:20, 30:40]))
+    assert np.all(cloud.flags[10:20, 30:40] == FLAG_NO_PHASE)
+    assert not cloud.mask[50, 60] and not cloud.mask[70, 80]
+    assert cloud.count == up.size - 100 - 2
+    # without v_p in the solution, a NaN v_p does not invalidate the point
+    cloud = triangulate(rig, Coords(up, vp, mask), use_v_p=False)
+    assert cloud.mask[70, 80]
+    assert np.isnan(cloud.residual[70, 80])
+
+
+def test_wrong_fringe_order_is_inconsistent():
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    vp = vp.copy()
+    period = 600 / 48
+    # a fringe-order error on v: v_p barely depends on depth in this rig, so the error
+    # lies across the epipolar line and the check sees it
+    vp[5:8, 5:8] += period
+    cloud = triangulate(rig, Coords(up, vp))
+    assert np.all(cloud.flags[5:8, 5:8] & FLAG_INCONSISTENT)
+    assert np.all(cloud.residual[5:8, 5:8] > 0.9 * period)
+    ok = np.ones(SHAPE, bool)
+    ok[5:8, 5:8] = False
+    assert cloud.mask[ok].all()
+    # the check can be switched off
+    cloud = triangulate(rig, Coords(up, vp), max_residual=None)
+    assert cloud.mask.all()
+    # an error along the epipolar line (u_p here) only moves the point: the one-axis
+    # depth sensitivity is what the check cannot see
+    X, up, vp = surface_points(rig)
+    up = up.copy()
+    up[5:8, 5:8] += 800 / 64
+    cloud = triangulate(rig, Coords(up, vp))
+    tri = Triangulator.for_shape(rig, SHAPE)
+    Ju = np.abs(tri.coef[0, 2]) / rig.projector.intrinsics.du  # px per mm, undistorted
+    dz = np.abs(cloud.z[5:8, 5:8] - X[5:8, 5:8, 2])
+    assert np.allclose(dz, 12.5 / Ju * abs(tri.direction[2]), rtol=0.05)
+    assert np.all(cloud.residual[5:8, 5:8] < 1.0)
+
+
+def test_outside_projector_and_max_sigma():
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    up = up.copy()
+    up[0, 0] = 2000.0
+    sig = np.full(SHAPE, 0.02)
+    sig[1, 1] = 1.0
+    cloud = triangulate(rig, Coords(up, None, None, sig), max_sigma_z=0.01)
+    assert cloud.flags[0, 0] & FLAG_OUTSIDE
+    assert cloud.flags[1, 1] & FLAG_UNCERTAIN
+    assert cloud.count == up.size - 2
+
+
+def test_no_sigma_gives_nan_uncertainty():
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    cloud = triangulate(rig, Coords(up, vp))
+    assert np.all(np.isnan(cloud.sigma_z))
+    assert np.max(np.abs(cloud.xyz - X)) < 1e-9
+
+
+@pytest.mark.parametrize("use_v", [False, True])
+def test_sigma_matches_monte_carlo(use_v):
+    rig = make_rig()
+    rng = np.random.default_rng(1)
+    # a few pixels across the field, each repeated n times with noisy u_p (and v_p)
+    pix = np.array([[3, 4], [50, 60], [90, 120], [10, 110]])
+    n = 4000
+    s_true = np.array([-1.5, 0.0, 1.0, 2.0])
+    u_c = np.repeat(pix[:, 1].astype(float), n)
+    v_c = np.repeat(pix[:, 0].astype(float), n)
+    lines = Triangulator.for_pixels(rig, pix[:, 1].astype(float), pix[:, 0].astype(float))
+    X = lines.line_points(s_true)
+    up, vp = rig.projector.project(X)
+    su = np.array([0.02, 0.05, 0.03, 0.08])
+    sv = np.array([0.04, 0.02, 0.06, 0.03])
+    up_n = np.repeat(up, n) + rng.standard_normal(4 * n) * np.repeat(su, n)
+    vp_n = np.repeat(vp, n) + rng.standard_normal(4 * n) * np.repeat(sv, n)
+    cloud = triangulate_pixels(rig, u_c, v_c, up_n, vp_n if use_v else None,
+                               sigma_u_p=np.repeat(su, n),
+                               sigma_v_p=np.repeat(sv, n) if use_v else None)
+    pts = cloud.xyz[0].reshape(4, n, 3)
+    # the predicted sigma at the true point
+    exact = triangulate_pixels(rig, pix[:, 1], pix[:, 0], up, vp if use_v else None,
+                               sigma_u_p=su, sigma_v_p=sv if use_v else None)
+    sig_pred = exact.sigma_xyz[0]  # (4, 3)
+    sig_mc = pts.std(axis=1, ddof=1)
+    # the sample std of n Gaussian draws has a relative standard error 1/sqrt(2(n-1));
+    # allow 4 of them (plus the tiny nonlinearity of the distortion)
+    tol = 4.0 / np.sqrt(2 * (n - 1))
+    assert np.all(np.abs(sig_mc / sig_pred - 1.0) < tol), (sig_mc, sig_pred)
+    # unbiased: the mean lands within 4 standard errors of the truth
+    mean_err = pts.mean(axis=1) - X
+    assert np.all(np.abs(mean_err) < 4 * sig_pred / np.sqrt(n) + 1e-12)
+    # the errors are along the camera line: X, Y, Z fully correlated
+    d = rig.camera.axis_world
+    dev = pts - pts.mean(axis=1, keepdims=True)
+    perp = dev - (dev @ d)[..., None] * d
+    assert np.max(np.abs(perp)) < 1e-9
+
+
+def test_combining_v_reduces_uncertainty_only_by_its_depth_sensitivity():
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    s = np.full(SHAPE, 0.03)
+    c_u = triangulate(rig, Coords(up, None, None, s))
+    c_uv = triangulate(rig, Coords(up, vp, None, s, s))
+    assert np.all(c_uv.sigma_z <= c_u.sigma_z * (1 + 1e-12))
+    # sigma_z for u only = sigma_u / |du_p/ds| * |d_z|; check one pixel by finite differences
+    tri = Triangulator.for_shape(rig, SHAPE)
+    i, j = 40, 70
+    s0 = (X[i, j] - tri.line_points(np.zeros(SHAPE))[i, j]) @ tri.direction
+    h = 1e-4
+    u1, _ = rig.projector.project(tri.line_points(np.full(SHAPE, s0 + h))[i, j])
+    u0, _ = rig.projector.project(tri.line_points(np.full(SHAPE, s0 - h))[i, j])
+    J = (u1 - u0) / (2 * h)
+    assert c_u.sigma_line[i, j] == pytest.approx(0.03 / abs(J), rel=1e-6)
+    assert c_u.sigma_z[i, j] == pytest.approx(0.03 / abs(J) * abs(tri.direction[2]), rel=1e-6)
+
+
+def test_shape_and_geometry_errors():
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    with pytest.raises(TriangulationError, match="rig does not belong"):
+        triangulate(rig, Coords(up[:-1]))
+    tri = Triangulator.for_shape(rig, SHAPE)
+    with pytest.raises(TriangulationError, match="shape"):
+        tri.triangulate(Coords(up, vp[:, :-1]))
+    # projector parallel to the camera: no depth information
+    flat = Rig(rig.camera, TelecentricDevice(rig.projector.intrinsics,
+                                             rig.camera.R_dev_world, np.zeros(2)))
+    with pytest.raises(TriangulationError, match="depth"):
+        triangulate(flat, Coords(up))
+    with pytest.raises(TriangulationError, match="parallel"):
+        triangulate(flat, Coords(up, vp))
+    assert issubclass(TriangulationError, ValueError)
+
+
+def test_triangulate_pixels_matches_grid():
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    rr, cc = np.mgrid[0:SHAPE[0]:7, 0:SHAPE[1]:9]
+    cloud = triangulate_pixels(rig, cc.ravel(), rr.ravel(), up[rr, cc].ravel(),
+                               vp[rr, cc].ravel())
+    assert np.max(np.abs(cloud.xyz[0] - X[rr, cc].reshape(-1, 3))) < 1e-9
+
+
+def test_point_cloud_is_read_only_and_from_xyz():
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    cloud = triangulate(rig, Coords(up))
+    with pytest.raises(ValueError):
+        cloud.xyz[0, 0, 0] = 1.0
+    xyz = X.copy()
+    xyz[3, 4] = np.nan
+    c2 = PointCloud.from_xyz(xyz, sigma_z=np.full(SHAPE, 0.001))
+    assert c2.count == X.shape[0] * X.shape[1] - 1
+    assert np.allclose(c2.sigma_z[c2.mask], 0.001)
+    assert np.allclose(c2.points(), X.reshape(-1, 3)[np.arange(X.size // 3) != 3 * 128 + 4])
+    with pytest.raises(TriangulationError):
+        PointCloud.from_xyz(np.zeros((3, 4)))
+
+
+# --- height map ------------------------------------------------------------------------
+def plane_cloud(rig, coef=(0.05, -0.03, 0.2)):
+    """Points where each camera line meets z = a x + b y + c."""
+    tri = Triangulator.for_shape(rig, SHAPE)
+    o = tri.line_points(np.zeros(SHAPE))
+    d = tri.direction
+    a, b, c = coef
+    n = np.array([-a, -b, 1.0])
+    s = (c - o @ n) / (d @ n)
+    return tri.line_points(s)
+
+
+def test_height_map_of_a_plane_is_exact():
+    rig = make_rig()
+    X = plane_cloud(rig)
+    cloud = PointCloud.from_xyz(X, sigma_z=np.full(SHAPE, 0.002))
+    hm = height_map(cloud, pixel_mm=0.02)
+    assert isinstance(hm, HeightMap) and hm.z.dtype == np.float32
+    yy, xx = np.meshgrid(hm.y, hm.x, indexing="ij")
+    expect = 0.05 * xx - 0.03 * yy + 0.2
+    ok = np.isfinite(hm.z)
+    # the inner part of the footprint is covered
+    assert ok.mean() > 0.8
+    assert np.max(np.abs(hm.z[ok] - expect[ok])) < 1e-6  # float32 storage
+    assert np.allclose(hm.sigma_z[ok], 0.002)
+    # default pixel: the camera's footprint (0.03 mm pixels at m = 1)
+    hm2 = height_map(cloud)
+    assert hm2.pixel_mm == pytest.approx(0.03, rel=0.01)
+    l, r, b, t = hm.extent
+    assert l <= np.nanmin(X[..., 0]) and r >= np.nanmax(X[..., 0])
+    assert b <= np.nanmin(X[..., 1]) and t >= np.nanmax(X[..., 1])
+
+
+def test_height_map_of_a_sphere_within_interpolation_error():
+    rig = make_rig()
+    tri = Triangulator.for_shape(rig, SHAPE)
+    o = tri.line_points(np.zeros(SHAPE))
+    d = tri.direction
+    c, R = np.array([0.2, -0.1, -5.0]), 6.0
+    # nearest intersection with the sphere from the camera (largest z)
+    w = o - c
+    bq = w @ d
+    disc = bq**2 - (np.sum(w * w, axis=-1) - R * R)
+    s = -bq - np.sqrt(disc)
+    X = tri.line_points(s)
+    cloud = PointCloud.from_xyz(X)
+    hm = height_map(cloud, pixel_mm=0.017)
+    yy, xx = np.meshgrid(hm.y, hm.x, indexing="ij")
+    expect = c[2] + np.sqrt(R * R - (xx - c[0]) ** 2 - (yy - c[1]) ** 2)
+    ok = np.isfinite(hm.z)
+    # linear interpolation on triangles of side h ~ 0.03*sqrt(2) mm of a surface with
+    # curvature 1/R (slope < 0.5 here): error <= h^2 / (8 R) * (1 + slope^2)^1.5
+    assert np.nanmax(np.hypot(X[..., 0] - c[0], X[..., 1] - c[1])) < 0.44 * R
+    h = 0.03 * np.sqrt(2) * 1.05
+    bound = h * h / (8 * R) * 1.25**1.5 + 1e-6
+    assert ok.mean() > 0.8
+    assert np.max(np.abs(hm.z[ok] - expect[ok])) < bound
+    assert hm.sigma_z is None
+
+
+def test_height_map_holes_and_errors():
+    rig = make_rig()
+    X = plane_cloud(rig).copy()
+    X[40:60, 50:80] = np.nan
+    cloud = PointCloud.from_xyz(X)
+    hm = height_map(cloud, pixel_mm=0.03)
+    # the hole stays a hole: world position of the hole's centre pixel
+    xc, yc = plane_cloud(rig)[50, 65, :2]
+    j = int(round((xc - hm.x0) / hm.pixel_mm))
+    i = int(round((hm.y0 - yc) / hm.pixel_mm))
+    assert np.isnan(hm.z[i, j])
+    with pytest.raises(TriangulationError):
+        height_map(cloud, pixel_mm=-1.0)
+    with pytest.raises(TriangulationError, match="too large"):
+        height_map(cloud, pixel_mm=1e-5)
+    with pytest.raises(TriangulationError, match="fewer than 3"):
+        height_map(PointCloud.from_xyz(np.full((4, 4, 3), np.nan)))
