@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
-__all__ = ["accumulate_samples", "heightfield_eval", "heightfield_intersect"]
+__all__ = ["accumulate_samples", "heightfield_eval", "heightfield_intersect", "camera_rays",
+           "project_points", "shade", "interp_samples", "plate_intersect", "boxes_intersect",
+           "sphere_intersect", "bga_intersect", "plane_intersect"]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, parallel=True)
 def accumulate_samples(coord, weight, per_pixel, profile, x_first, inv_step, out):
     """Sum the samples of each pixel: ``out[p] = sum_s weight * profile(coord)``.
 
@@ -23,7 +27,7 @@ def accumulate_samples(coord, weight, per_pixel, profile, x_first, inv_step, out
     """
     npix = out.shape[0]
     last = profile.shape[0] - 1
-    for p in range(npix):
+    for p in numba.prange(npix):
         acc = 0.0
         base = p * per_pixel
         for s in range(per_pixel):
@@ -151,3 +155,388 @@ def heightfield_intersect(z, px, x0, y0, o, d):
             prev_t = t
             t += step
     return t_out, nrm
+
+
+# --------------------------------------------------------------------------- devices
+@numba.njit(cache=True, nogil=True)
+def _undistort_one(xd, yd, k1, s1, s2):
+    """Newton inversion of the sensor distortion at one point (as model.undistort_sensor).
+
+    Returns (xu, yu, ok): ok is False where it does not converge or converges beyond the
+    fold of the distortion.
+    """
+    if k1 == 0.0 and s1 == 0.0 and s2 == 0.0:
+        return xd, yd, True
+    thresh = max(1e-12, 64.0 * 2.220446049250313e-16 * (abs(xd) + abs(yd)))
+    xu = xd
+    yu = yd
+    for _ in range(50):
+        r2 = xu * xu + yu * yu
+        fx = xu + k1 * xu * r2 + s1 * r2 - xd
+        fy = yu + k1 * yu * r2 + s2 * r2 - yd
+        a = 1.0 + k1 * (r2 + 2.0 * xu * xu) + 2.0 * s1 * xu
+        b = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
+        c = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
+        d = 1.0 + k1 * (r2 + 2.0 * yu * yu) + 2.0 * s2 * yu
+        det = a * d - b * c
+        xu = xu - (d * fx - b * fy) / det
+        yu = yu - (-c * fx + a * fy) / det
+        if abs(fx) + abs(fy) <= thresh:
+            break
+    r2 = xu * xu + yu * yu
+    res = abs(xu + k1 * xu * r2 + s1 * r2 - xd) + abs(yu + k1 * yu * r2 + s2 * r2 - yd)
+    a = 1.0 + k1 * (r2 + 2.0 * xu * xu) + 2.0 * s1 * xu
+    b = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
+    c = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
+    d = 1.0 + k1 * (r2 + 2.0 * yu * yu) + 2.0 * s2 * yu
+    ok = (res <= 10.0 * thresh) and (a * d - b * c > 0.0) and (a + d > 0.0)
+    return xu, yu, ok
+
+
+@numba.njit(cache=True, parallel=True)
+def camera_rays(u, v, intr, R, t, start):
+    """Orthographic camera rays through pixels (u, v) (N,).
+
+    ``intr`` = (m, du, dv, u0, v0, k1, s1, s2); ``R`` (3, 3) R_dev_world; ``t`` (2,).
+    Returns origins (N, 3) placed ``start`` mm behind the zero-depth plane along the
+    viewing direction ``R[2]``, and ok (N,) bool (undistortion converged).
+    """
+    n = u.shape[0]
+    o = np.empty((n, 3))
+    ok = np.empty(n, dtype=np.bool_)
+    m, du, dv, u0, v0, k1, s1, s2 = intr
+    for i in numba.prange(n):
+        xu, yu, good = _undistort_one((u[i] - u0) * du, (v[i] - v0) * dv, k1, s1, s2)
+        ok[i] = good
+        a = xu / m - t[0]
+        b = yu / m - t[1]
+        for k in range(3):
+            o[i, k] = a * R[0, k] + b * R[1, k] - start * R[2, k]
+    return o, ok
+
+
+@numba.njit(cache=True, parallel=True)
+def project_points(P, intr, R, t):
+    """Project world points P (N, 3) with a device (same formula as model.project)."""
+    n = P.shape[0]
+    up = np.empty(n)
+    vp = np.empty(n)
+    m, du, dv, u0, v0, k1, s1, s2 = intr
+    for i in numba.prange(n):
+        xu = m * (P[i, 0] * R[0, 0] + P[i, 1] * R[0, 1] + P[i, 2] * R[0, 2] + t[0])
+        yu = m * (P[i, 0] * R[1, 0] + P[i, 1] * R[1, 1] + P[i, 2] * R[1, 2] + t[1])
+        r2 = xu * xu + yu * yu
+        up[i] = u0 + (xu + k1 * xu * r2 + s1 * r2) / du
+        vp[i] = v0 + (yu + k1 * yu * r2 + s2 * r2) / dv
+    return up, vp
+
+
+@numba.njit(cache=True, nogil=True)
+def _phi(x):
+    return 0.5 * math.erfc(-x * 0.7071067811865476)
+
+
+@numba.njit(cache=True, parallel=True)
+def shade(t, nrm, alb, spec, unshadowed, up, vp, to_proj, h_vec, spec_sigma, dn, ambient,
+          W, H, sigma_p):
+    """Per-sample weights of the pattern (see render._trace). Returns wu, wv, amb, lit."""
+    n = t.shape[0]
+    wu = np.zeros(n)
+    wv = np.zeros(n)
+    amb = np.zeros(n)
+    lit = np.zeros(n, dtype=np.bool_)
+    for i in numba.prange(n):
+        if not np.isfinite(t[i]):
+            continue
+        amb[i] = dn * ambient * alb[i]
+        cos_i = nrm[i, 0] * to_proj[0] + nrm[i, 1] * to_proj[1] + nrm[i, 2] * to_proj[2]
+        if cos_i <= 0.0 or not unshadowed[i]:
+            continue
+        ch = nrm[i, 0] * h_vec[0] + nrm[i, 1] * h_vec[1] + nrm[i, 2] * h_vec[2]
+        ang = math.acos(min(1.0, max(-1.0, ch)))
+        lobe = math.exp(-0.5 * (ang / spec_sigma) ** 2)
+        w = dn * (alb[i] * cos_i + spec[i] * lobe)
+        if sigma_p > 0.0:
+            eu = _phi((up[i] + 0.5) / sigma_p) - _phi((up[i] - W + 0.5) / sigma_p)
+            ev = _phi((vp[i] + 0.5) / sigma_p) - _phi((vp[i] - H + 0.5) / sigma_p)
+        else:
+            eu = 1.0 if (up[i] >= -0.5 and up[i] <= W - 0.5) else 0.0
+            ev = 1.0 if (vp[i] >= -0.5 and vp[i] <= H - 0.5) else 0.0
+        wu[i] = w * ev
+        wv[i] = w * eu
+        lit[i] = up[i] >= -0.5 and up[i] <= W - 0.5 and vp[i] >= -0.5 and vp[i] <= H - 0.5
+    return wu, wv, amb, lit
+
+
+@numba.njit(cache=True, parallel=True)
+def interp_samples(f, offsets, scale, out):
+    """Quadratic interpolation of a per-pixel field at sub-pixel offsets.
+
+    f (rows, cols); offsets (ns, 2) as (du, dv); out (rows * cols * ns,) pixel-major,
+    written with ``scale * value``; border pixels get the centre value.
+    """
+    rows, cols = f.shape
+    ns = offsets.shape[0]
+    for r in numba.prange(rows):
+        for c in range(cols):
+            base = (r * cols + c) * ns
+            f0 = f[r, c]
+            if r == 0 or c == 0 or r == rows - 1 or c == cols - 1:
+                for s in range(ns):
+                    out[base + s] = scale * f0
+                continue
+            fx = 0.5 * (f[r, c + 1] - f[r, c - 1])
+            fy = 0.5 * (f[r + 1, c] - f[r - 1, c])
+            fxx = f[r, c + 1] - 2.0 * f0 + f[r, c - 1]
+            fyy = f[r + 1, c] - 2.0 * f0 + f[r - 1, c]
+            fxy = 0.25 * (f[r + 1, c + 1] - f[r + 1, c - 1] - f[r - 1, c + 1]
+                          + f[r - 1, c - 1])
+            for s in range(ns):
+                a = offsets[s, 0]
+                b = offsets[s, 1]
+                out[base + s] = scale * (f0 + a * fx + b * fy + 0.5 * a * a * fxx
+                                         + 0.5 * b * b * fyy + a * b * fxy)
+
+
+# --------------------------------------------------------------------------- scenes
+@numba.njit(cache=True, nogil=True)
+def _new_hits(n):
+    return (np.full(n, np.inf), np.zeros((n, 3)), np.zeros(n), np.zeros(n),
+            np.full(n, -1, dtype=np.int32))
+
+
+@numba.njit(cache=True, nogil=True)
+def _set_normal(nrm, i, nx, ny, nz, d):
+    """Store a unit normal facing the incoming ray."""
+    if nx * d[0] + ny * d[1] + nz * d[2] > 0.0:
+        nx, ny, nz = -nx, -ny, -nz
+    nrm[i, 0] = nx
+    nrm[i, 1] = ny
+    nrm[i, 2] = nz
+
+
+@numba.njit(cache=True, parallel=True)
+def plate_intersect(o, d, R, tw, rows, cols, pitch, radius, margin, albedo, marker_albedo):
+    """Circle plate: the plane Z = 0 of the target frame (R world<-target, origin tw)."""
+    n = o.shape[0]
+    t_out, nrm, alb, spec, part = _new_hits(n)
+    dlz = R[0, 2] * d[0] + R[1, 2] * d[1] + R[2, 2] * d[2]
+    dlx = R[0, 0] * d[0] + R[1, 0] * d[1] + R[2, 0] * d[2]
+    dly = R[0, 1] * d[0] + R[1, 1] * d[1] + R[2, 1] * d[2]
+    if dlz == 0.0:
+        return t_out, nrm, alb, spec, part
+    x1 = (cols - 1) * pitch + margin
+    y1 = (rows - 1) * pitch + margin
+    r2max = radius * radius
+    for i in numba.prange(n):
+        px = o[i, 0] - tw[0]
+        py = o[i, 1] - tw[1]
+        pz = o[i, 2] - tw[2]
+        lx = R[0, 0] * px + R[1, 0] * py + R[2, 0] * pz
+        ly = R[0, 1] * px + R[1, 1] * py + R[2, 1] * pz
+        lz = R[0, 2] * px + R[1, 2] * py + R[2, 2] * pz
+        t = -lz / dlz
+        if not t > 0.0:
+            continue
+        x = lx + t * dlx
+        y = ly + t * dly
+        if x < -margin or x > x1 or y < -margin or y > y1:
+            continue
+        j = min(max(np.round(x / pitch), 0.0), cols - 1.0)
+        k = min(max(np.round(y / pitch), 0.0), rows - 1.0)
+        r2 = (x - j * pitch) ** 2 + (y - k * pitch) ** 2
+        t_out[i] = t
+        _set_normal(nrm, i, R[0, 2], R[1, 2], R[2, 2], d)
+        if r2 <= r2max:
+            alb[i] = marker_albedo
+            part[i] = 1
+        else:
+            alb[i] = albedo
+            part[i] = 0
+    return t_out, nrm, alb, spec, part
+
+
+@numba.njit(cache=True, parallel=True)
+def boxes_intersect(o, d, R, tw, blocks, base, albedo, base_albedo):
+    """Step gauge: base rectangle at Z = 0 plus axis-aligned blocks, in the scene frame."""
+    n = o.shape[0]
+    t_out, nrm, alb, spec, part = _new_hits(n)
+    dl = np.empty(3)
+    for k in range(3):
+        dl[k] = R[0, k] * d[0] + R[1, k] * d[1] + R[2, k] * d[2]
+    nb = blocks.shape[0]
+    for i in numba.prange(n):
+        ol = np.empty(3)
+        for k in range(3):
+            ol[k] = (R[0, k] * (o[i, 0] - tw[0]) + R[1, k] * (o[i, 1] - tw[1])
+                     + R[2, k] * (o[i, 2] - tw[2]))
+        best = np.inf
+        bn = np.zeros(3)
+        bp = -1
+        if dl[2] != 0.0:
+            t = -ol[2] / dl[2]
+            x = ol[0] + t * dl[0]
+            y = ol[1] + t * dl[1]
+            if t > 0.0 and x >= base[0] and x <= base[1] and y >= base[2] and y <= base[3]:
+                best = t
+                bn[0] = 0.0
+                bn[1] = 0.0
+                bn[2] = 1.0
+                bp = 0
+        for b in range(nb):
+            tnear = -np.inf
+            tfar = np.inf
+            axis = 0
+            miss = False
+            for k in range(3):
+                lo = blocks[b, 2 * k]
+                hi = blocks[b, 2 * k + 1]
+                if dl[k] == 0.0:
+                    if ol[k] < lo or ol[k] > hi:
+                        miss = True
+                    continue
+                t1 = (lo - ol[k]) / dl[k]
+                t2 = (hi - ol[k]) / dl[k]
+                if t1 > t2:
+                    t1, t2 = t2, t1
+                if t1 > tnear:
+                    tnear = t1
+                    axis = k
+                if t2 < tfar:
+                    tfar = t2
+            if miss or tnear > tfar or not tnear > 0.0 or tnear >= best:
+                continue
+            best = tnear
+            bn[0] = 0.0
+            bn[1] = 0.0
+            bn[2] = 0.0
+            bn[axis] = -1.0 if dl[axis] > 0 else 1.0
+            bp = b + 1
+        if bp >= 0:
+            t_out[i] = best
+            wx = R[0, 0] * bn[0] + R[0, 1] * bn[1] + R[0, 2] * bn[2]
+            wy = R[1, 0] * bn[0] + R[1, 1] * bn[1] + R[1, 2] * bn[2]
+            wz = R[2, 0] * bn[0] + R[2, 1] * bn[1] + R[2, 2] * bn[2]
+            _set_normal(nrm, i, wx, wy, wz, d)
+            alb[i] = base_albedo if bp == 0 else albedo
+            part[i] = bp
+    return t_out, nrm, alb, spec, part
+
+
+@numba.njit(cache=True, nogil=True)
+def _sphere_t(ox, oy, oz, d, cx, cy, cz, r):
+    """Nearest intersection parameter with a sphere (closest-approach form); inf if none."""
+    px = ox - cx
+    py = oy - cy
+    pz = oz - cz
+    tc = -(px * d[0] + py * d[1] + pz * d[2])
+    qx = px + tc * d[0]
+    qy = py + tc * d[1]
+    qz = pz + tc * d[2]
+    disc = r * r - (qx * qx + qy * qy + qz * qz)
+    if disc < 0.0:
+        return np.inf
+    return tc - math.sqrt(disc)
+
+
+@numba.njit(cache=True, parallel=True)
+def sphere_intersect(o, d, c, r, plane_z, half, albedo, plane_albedo):
+    """A sphere (hidden below Z = plane_z) on a square plane of half size ``half``."""
+    n = o.shape[0]
+    t_out, nrm, alb, spec, part = _new_hits(n)
+    for i in numba.prange(n):
+        best = np.inf
+        if d[2] != 0.0:
+            t = (plane_z - o[i, 2]) / d[2]
+            x = o[i, 0] + t * d[0]
+            y = o[i, 1] + t * d[1]
+            if t > 0.0 and abs(x - c[0]) <= half and abs(y - c[1]) <= half:
+                best = t
+                t_out[i] = t
+                _set_normal(nrm, i, 0.0, 0.0, 1.0, d)
+                alb[i] = plane_albedo
+                part[i] = 0
+        ts = _sphere_t(o[i, 0], o[i, 1], o[i, 2], d, c[0], c[1], c[2], r)
+        if ts > 0.0 and ts < best:
+            pz = o[i, 2] + ts * d[2]
+            if pz >= plane_z:
+                t_out[i] = ts
+                _set_normal(nrm, i, (o[i, 0] + ts * d[0] - c[0]) / r,
+                            (o[i, 1] + ts * d[1] - c[1]) / r, (pz - c[2]) / r, d)
+                alb[i] = albedo
+                part[i] = 1
+    return t_out, nrm, alb, spec, part
+
+
+@numba.njit(cache=True, parallel=True)
+def bga_intersect(o, d, origin, pitch, centre_z, present, r, chip, reach, hmid,
+                  substrate_albedo, board_albedo, ball_albedo, ball_specular):
+    """BGA: substrate Z = 0 (chip rectangle ``chip`` = (x0, x1, y0, y1), board beyond)
+    and spherical caps (centre heights ``centre_z`` (rows, cols), radius r, hidden
+    below Z = 0) at ``origin + (j, i) * pitch`` where ``present``."""
+    n = o.shape[0]
+    rows, cols = centre_z.shape
+    t_out, nrm, alb, spec, part = _new_hits(n)
+    for i in numba.prange(n):
+        best = np.inf
+        if d[2] != 0.0:
+            t = -o[i, 2] / d[2]
+            if t > 0.0:
+                x = o[i, 0] + t * d[0]
+                y = o[i, 1] + t * d[1]
+                best = t
+                t_out[i] = t
+                _set_normal(nrm, i, 0.0, 0.0, 1.0, d)
+                if x >= chip[0] and x <= chip[1] and y >= chip[2] and y <= chip[3]:
+                    alb[i] = substrate_albedo
+                    part[i] = 0
+                else:
+                    alb[i] = board_albedo
+                    part[i] = 1
+            tm = (hmid - o[i, 2]) / d[2]
+        else:
+            tm = 0.0
+        xm = o[i, 0] + tm * d[0]
+        ym = o[i, 1] + tm * d[1]
+        jc = int(np.round((xm - origin[0]) / pitch))
+        ic = int(np.round((ym - origin[1]) / pitch))
+        for ii in range(ic - reach, ic + reach + 1):
+            if ii < 0 or ii >= rows:
+                continue
+            for jj in range(jc - reach, jc + reach + 1):
+                if jj < 0 or jj >= cols or not present[ii, jj]:
+                    continue
+                cx = origin[0] + jj * pitch
+                cy = origin[1] + ii * pitch
+                cz = centre_z[ii, jj]
+                ts = _sphere_t(o[i, 0], o[i, 1], o[i, 2], d, cx, cy, cz, r)
+                if ts > 0.0 and ts < best:
+                    pz = o[i, 2] + ts * d[2]
+                    if pz >= 0.0:
+                        best = ts
+                        t_out[i] = ts
+                        _set_normal(nrm, i, (o[i, 0] + ts * d[0] - cx) / r,
+                                    (o[i, 1] + ts * d[1] - cy) / r, (pz - cz) / r, d)
+                        alb[i] = ball_albedo
+                        spec[i] = ball_specular
+                        part[i] = 2
+    return t_out, nrm, alb, spec, part
+
+
+@numba.njit(cache=True, parallel=True)
+def plane_intersect(o, d, normal, point, albedo):
+    """An infinite plane through ``point`` with unit ``normal``."""
+    n = o.shape[0]
+    t_out, nrm, alb, spec, part = _new_hits(n)
+    den = normal[0] * d[0] + normal[1] * d[1] + normal[2] * d[2]
+    if den == 0.0:
+        return t_out, nrm, alb, spec, part
+    for i in numba.prange(n):
+        t = ((point[0] - o[i, 0]) * normal[0] + (point[1] - o[i, 1]) * normal[1]
+             + (point[2] - o[i, 2]) * normal[2]) / den
+        if t > 0.0:
+            t_out[i] = t
+            _set_normal(nrm, i, normal[0], normal[1], normal[2], d)
+            alb[i] = albedo
+            part[i] = 0
+    return t_out, nrm, alb, spec, part

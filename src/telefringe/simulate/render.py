@@ -33,9 +33,10 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 from scipy.special import ndtr
 
+from ..model import ConvergenceError
 from ..patterns import pattern_stack
 from ..scan import GrayGroup, PhaseGroup, Scan, ScanManifest
-from ._kernels import accumulate_samples
+from . import _kernels as _k
 from .presets import VirtualRig
 
 __all__ = ["Truth", "Geometry", "default_groups", "render_scan", "trace_geometry",
@@ -206,7 +207,9 @@ class Geometry:
 
     Attributes
     ----------
-    shape : (rows, cols) of the camera image.
+    shape : (rows, cols) of the traced image: the camera image grown by ``pad`` pixels
+        on each side, so that the camera blur sees the scene beyond the sensor's edge.
+    pad : int.
     n1 : int, samples per pixel of the first pass (supersample**2).
     cu1, cv1 : (rows * cols * n1,) projector coordinates of each sample.
     wu1, wv1 : (rows * cols * n1,) float32, weight of each sample for u- and v-axis
@@ -219,6 +222,7 @@ class Geometry:
     """
 
     shape: tuple[int, int]
+    pad: int
     n1: int
     cu1: np.ndarray
     cv1: np.ndarray
@@ -234,6 +238,11 @@ class Geometry:
     truth: Truth
 
 
+def _blur_pad(sigma: float) -> int:
+    """Margin (pixels) the camera blur reaches beyond the image (4 sigma kernel)."""
+    return int(np.ceil(4.0 * sigma)) if sigma > 0 else 0
+
+
 def _sub_offsets(n: int) -> np.ndarray:
     """Midpoint-rule offsets of n x n samples over a unit pixel, (n * n, 2) as (du, dv)."""
     a = (np.arange(n) + 0.5) / n - 0.5
@@ -241,48 +250,54 @@ def _sub_offsets(n: int) -> np.ndarray:
     return np.stack([du.ravel(), dv.ravel()], axis=1)
 
 
+def _device_args(dev):
+    k = dev.intrinsics
+    intr = (float(k.m), float(k.du), float(k.dv), float(k.u0), float(k.v0), float(k.k1),
+            float(k.s1), float(k.s2))
+    return intr, np.ascontiguousarray(dev.R_dev_world), np.ascontiguousarray(dev.t_dev)
+
+
 def _trace(vrig: VirtualRig, scene, u: np.ndarray, v: np.ndarray) -> dict:
-    """Trace camera rays through pixels (u, v) (N,) into the scene and shade them."""
+    """Trace camera rays through pixels (u, v) (N,) into the scene and shade them.
+
+    Returns per-ray: hit, P (world point), up, vp (projector coordinates), normal, part,
+    albedo, specular, lit (facing the projector, unshadowed, inside the panel), wu, wv
+    (DN at exposure 1 per unit emitted intensity, times the blurred panel window of the
+    other axis) and ambient (DN).
+    """
     cam, proj = vrig.camera, vrig.projector
     ph = vrig.photometry
-    origin, d_cam = cam.backproject(u, v)
-    o = origin - _RAY_START_MM * d_cam
+    intr_c, R_c, t_c = _device_args(cam)
+    o, ok = _k.camera_rays(np.ascontiguousarray(u, dtype=float),
+                           np.ascontiguousarray(v, dtype=float), intr_c, R_c, t_c,
+                           _RAY_START_MM)
+    if not np.all(ok):
+        raise ConvergenceError(f"the camera's distortion cannot be inverted at "
+                               f"{int(np.count_nonzero(~ok))} sample(s)")
+    d_cam = np.ascontiguousarray(cam.axis_world)
     hits = scene.intersect(o, d_cam)
     hit = hits.hit
-    n = len(u)
-    P = np.full((n, 3), np.nan)
-    P[hit] = o[hit] + hits.t[hit, None] * d_cam
-    up = np.full(n, np.nan)
-    vp = np.full(n, np.nan)
-    up[hit], vp[hit] = proj.project(P[hit])
-    d_proj = proj.axis_world
+    P = np.where(hit[:, None], o + np.where(hit, hits.t, 0.0)[:, None] * d_cam, np.nan)
+    intr_p, R_p, t_p = _device_args(proj)
+    up, vp = _k.project_points(P, intr_p, R_p, t_p)
+    d_proj = np.ascontiguousarray(proj.axis_world)
     to_proj = -d_proj
-    cos_i = np.where(hit, hits.normal @ to_proj, 0.0)
-    facing = hit & (cos_i > 0)
-    unshadowed = np.zeros(n, dtype=bool)
-    idx = np.nonzero(facing)[0]
+    facing = hit & (hits.normal @ to_proj > 0)
+    unshadowed = np.zeros(len(u), dtype=bool)
+    idx = np.flatnonzero(facing)
     if idx.size:
         h2 = scene.intersect(P[idx] - _RAY_START_MM * d_proj, d_proj)
         unshadowed[idx] = h2.t >= _RAY_START_MM - _SHADOW_EPS_MM
-    lit_geom = facing & unshadowed
-    # specular lobe around the half vector of illumination and view
     h_vec = to_proj - d_cam
     h_vec = h_vec / np.linalg.norm(h_vec)
-    ang = np.arccos(np.clip(hits.normal @ h_vec, -1.0, 1.0))
-    lobe = np.exp(-0.5 * (ang / np.radians(ph.specular_sigma_deg)) ** 2)
-    refl = hits.albedo * np.clip(cos_i, 0.0, None) + hits.specular * lobe
-    w = np.where(lit_geom, ph.dn_per_radiance * refl, 0.0)
     W, H = proj.intrinsics.width, proj.intrinsics.height
-    sig = ph.projector_blur_px
-    win_u = np.where(hit, _panel_window(np.nan_to_num(up, nan=-1e9), W, sig), 0.0)
-    win_v = np.where(hit, _panel_window(np.nan_to_num(vp, nan=-1e9), H, sig), 0.0)
-    in_panel = hit & (up >= -0.5) & (up <= W - 0.5) & (vp >= -0.5) & (vp <= H - 0.5)
-    return {
-        "hit": hit, "P": P, "up": up, "vp": vp, "normal": hits.normal, "part": hits.part,
-        "albedo": hits.albedo, "specular": hits.specular, "lit": lit_geom & in_panel,
-        "wu": w * win_v, "wv": w * win_u,
-        "ambient": np.where(hit, ph.dn_per_radiance * ph.ambient * hits.albedo, 0.0),
-    }
+    wu, wv, amb, lit = _k.shade(hits.t, hits.normal, hits.albedo, hits.specular, unshadowed,
+                                up, vp, to_proj, h_vec, np.radians(ph.specular_sigma_deg),
+                                float(ph.dn_per_radiance), float(ph.ambient), float(W),
+                                float(H), float(ph.projector_blur_px))
+    return {"hit": hit, "P": P, "up": up, "vp": vp, "normal": hits.normal, "part": hits.part,
+            "albedo": hits.albedo, "specular": hits.specular, "lit": lit, "wu": wu, "wv": wv,
+            "ambient": amb}
 
 
 def _trace_samples(vrig, scene, pix_u, pix_v, n_side):
@@ -314,11 +329,13 @@ def _trace_samples(vrig, scene, pix_u, pix_v, n_side):
     return cu, cv, wu, wv, amb
 
 
-def _trace_centres(vrig, scene, rows, cols):
-    """Exact trace of every pixel centre, in chunks; arrays shaped (rows, cols[, 3])."""
+def _trace_centres(vrig, scene, rows, cols, pad):
+    """Exact trace of every pixel centre, in chunks, for the image grown by ``pad`` pixels
+    on each side; arrays shaped (rows + 2 pad, cols + 2 pad[, 3])."""
+    rows, cols = rows + 2 * pad, cols + 2 * pad
     vv, uu = np.mgrid[0:rows, 0:cols]
-    pu = uu.ravel().astype(float)
-    pv = vv.ravel().astype(float)
+    pu = uu.ravel().astype(float) - pad
+    pv = vv.ravel().astype(float) - pad
     parts = []
     chunk = _CHUNK_PIXELS * 4
     for a in range(0, pu.size, chunk):
@@ -352,27 +369,6 @@ def _smooth_mask(c: dict) -> np.ndarray:
     return ok
 
 
-def _interp_samples(f: np.ndarray, n_side: int) -> np.ndarray:
-    """Values of a smooth per-pixel field at the n_side x n_side sample offsets of each
-    pixel, from the quadratic through its 3 x 3 neighbourhood (central differences).
-
-    Returns (rows, cols, n_side**2); border pixels get the centre value (they are never
-    used: the smooth mask excludes them).
-    """
-    rows, cols = f.shape
-    out = np.repeat(f[:, :, None], n_side * n_side, axis=2)
-    c = f[1:-1, 1:-1]
-    fx = 0.5 * (f[1:-1, 2:] - f[1:-1, :-2])
-    fy = 0.5 * (f[2:, 1:-1] - f[:-2, 1:-1])
-    fxx = f[1:-1, 2:] - 2 * c + f[1:-1, :-2]
-    fyy = f[2:, 1:-1] - 2 * c + f[:-2, 1:-1]
-    fxy = 0.25 * (f[2:, 2:] - f[2:, :-2] - f[:-2, 2:] + f[:-2, :-2])
-    for s, (a, b) in enumerate(_sub_offsets(n_side)):
-        out[1:-1, 1:-1, s] = c + a * fx + b * fy + 0.5 * a * a * fxx + 0.5 * b * b * fyy \
-            + a * b * fxy
-    return out
-
-
 def trace_geometry(vrig: VirtualRig, scene, *, exact: bool = False) -> Geometry:
     """Trace the camera's pixels into ``scene`` once: everything but the pattern.
 
@@ -384,10 +380,12 @@ def trace_geometry(vrig: VirtualRig, scene, *, exact: bool = False) -> Geometry:
     (``supersample``**2 if that is larger). ``exact=True`` traces every sub-sample.
     """
     ph = vrig.photometry
-    rows, cols = vrig.camera.intrinsics.shape
+    rows0, cols0 = vrig.camera.intrinsics.shape
+    pad = _blur_pad(ph.camera_blur_px)
+    rows, cols = rows0 + 2 * pad, cols0 + 2 * pad
     S = int(ph.supersample)
     E = max(int(ph.edge_supersample), S)
-    c = _trace_centres(vrig, scene, rows, cols)
+    c = _trace_centres(vrig, scene, rows0, cols0, pad)
     smooth = _smooth_mask(c) if not exact else np.zeros((rows, cols), dtype=bool)
     n1 = S * S
     if S == 1:
@@ -397,22 +395,30 @@ def trace_geometry(vrig: VirtualRig, scene, *, exact: bool = False) -> Geometry:
         wv1 = c["wv"].astype(np.float32).ravel()
         amb = c["ambient"].ravel().copy()
     else:
-        cu1 = _interp_samples(np.nan_to_num(c["up"], nan=_FAR), S).ravel()
-        cv1 = _interp_samples(np.nan_to_num(c["vp"], nan=_FAR), S).ravel()
-        wu1 = (_interp_samples(c["wu"], S) / n1).astype(np.float32).ravel()
-        wv1 = (_interp_samples(c["wv"], S) / n1).astype(np.float32).ravel()
+        offs = _sub_offsets(S)
+        npx = rows * cols * n1
+        cu1 = np.empty(npx)
+        cv1 = np.empty(npx)
+        wu1 = np.empty(npx, dtype=np.float32)
+        wv1 = np.empty(npx, dtype=np.float32)
+        _k.interp_samples(np.nan_to_num(c["up"], nan=_FAR), offs, 1.0, cu1)
+        _k.interp_samples(np.nan_to_num(c["vp"], nan=_FAR), offs, 1.0, cv1)
+        _k.interp_samples(c["wu"], offs, 1.0 / n1, wu1)
+        _k.interp_samples(c["wv"], offs, 1.0 / n1, wv1)
         amb = c["ambient"].ravel().copy()
     edge_pix = np.flatnonzero(~smooth)
     vv, uu = np.divmod(edge_pix, cols)
-    cu2, cv2, wu2, wv2, amb2 = _trace_samples(vrig, scene, uu.astype(float), vv.astype(float),
-                                              E)
+    cu2, cv2, wu2, wv2, amb2 = _trace_samples(vrig, scene, uu.astype(float) - pad,
+                                              vv.astype(float) - pad, E)
     amb[edge_pix] = amb2
-    lit = c["lit"]
-    truth = Truth(xyz_world=np.where(lit[..., None], c["P"], np.nan),
-                  u_p=np.where(lit, c["up"], np.nan), v_p=np.where(lit, c["vp"], np.nan),
-                  lit=lit, features=_features(vrig, scene), visible=c["hit"],
-                  part=c["part"].astype(np.int32))
-    return Geometry(shape=(rows, cols), n1=n1, cu1=cu1, cv1=cv1, wu1=wu1, wv1=wv1,
+    crop = (slice(pad, pad + rows0), slice(pad, pad + cols0))
+    lit = c["lit"][crop]
+    truth = Truth(xyz_world=np.where(lit[..., None], c["P"][crop], np.nan),
+                  u_p=np.where(lit, c["up"][crop], np.nan),
+                  v_p=np.where(lit, c["vp"][crop], np.nan),
+                  lit=lit, features=_features(vrig, scene), visible=c["hit"][crop].copy(),
+                  part=c["part"][crop].astype(np.int32))
+    return Geometry(shape=(rows, cols), pad=pad, n1=n1, cu1=cu1, cv1=cv1, wu1=wu1, wv1=wv1,
                     ambient=amb, edge_pixels=edge_pix, n2=E * E, cu2=cu2, cv2=cv2, wu2=wu2,
                     wv2=wv2, truth=truth)
 
@@ -459,27 +465,32 @@ def _integrate(geom: Geometry, vrig: VirtualRig, axis: str, levels: np.ndarray) 
     npx = geom.shape[0] * geom.shape[1]
     out = np.empty(npx)
     if axis == "u":
-        accumulate_samples(geom.cu1, geom.wu1, geom.n1, prof, x_first, inv, out)
+        _k.accumulate_samples(geom.cu1, geom.wu1, geom.n1, prof, x_first, inv, out)
     else:
-        accumulate_samples(geom.cv1, geom.wv1, geom.n1, prof, x_first, inv, out)
+        _k.accumulate_samples(geom.cv1, geom.wv1, geom.n1, prof, x_first, inv, out)
     if geom.edge_pixels.size:
         o2 = np.empty(geom.edge_pixels.size)
         if axis == "u":
-            accumulate_samples(geom.cu2, geom.wu2, geom.n2, prof, x_first, inv, o2)
+            _k.accumulate_samples(geom.cu2, geom.wu2, geom.n2, prof, x_first, inv, o2)
         else:
-            accumulate_samples(geom.cv2, geom.wv2, geom.n2, prof, x_first, inv, o2)
+            _k.accumulate_samples(geom.cv2, geom.wv2, geom.n2, prof, x_first, inv, o2)
         out[geom.edge_pixels] = o2
     out += geom.ambient
     return out.reshape(geom.shape)
 
 
 def _sensor(signal_dn8: np.ndarray, vrig: VirtualRig, exposure: float,
-            rng: np.random.Generator) -> np.ndarray:
-    """Camera: defocus, exposure, shot + read noise, quantisation, saturation."""
+            rng: np.random.Generator, pad: int) -> np.ndarray:
+    """Camera: defocus, exposure, shot + read noise, quantisation, saturation.
+
+    ``signal_dn8`` covers the image grown by ``pad`` pixels per side (cropped here after
+    the blur)."""
     ph = vrig.photometry
     s = signal_dn8 * exposure
     if ph.camera_blur_px > 0:
         s = gaussian_filter(s, ph.camera_blur_px, mode="nearest", truncate=4.0)
+    if pad:
+        s = s[pad:-pad, pad:-pad]
     e_per_dn8 = ph.full_well_e / 255.0
     electrons = s * e_per_dn8
     sigma_e = np.sqrt(np.maximum(electrons, 0.0) + ph.read_noise_e ** 2)
@@ -497,7 +508,7 @@ def _sensor(signal_dn8: np.ndarray, vrig: VirtualRig, exposure: float,
 def render_images(geom: Geometry, vrig: VirtualRig, axis: str, levels: np.ndarray, *,
                   exposure: float, rng: np.random.Generator) -> np.ndarray:
     """One camera image of a 1-D projector pattern ``levels`` along ``axis``."""
-    return _sensor(_integrate(geom, vrig, axis, levels), vrig, exposure, rng)
+    return _sensor(_integrate(geom, vrig, axis, levels), vrig, exposure, rng, geom.pad)
 
 
 def render_scan(vrig: VirtualRig, scene, groups, *, white: bool = True, black: bool = True,

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..io.scan import CircleGridTarget
 from ..model import rotation_from_rotvec
+from . import _kernels as _k
 
 __all__ = [
     "Hits",
@@ -41,7 +42,6 @@ __all__ = [
     "make_scene",
 ]
 
-_TINY = 1e-300
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,23 +75,6 @@ class Hits:
         return np.isfinite(self.t)
 
 
-def _empty_hits(n: int) -> dict:
-    return {"t": np.full(n, np.inf), "normal": np.zeros((n, 3)), "albedo": np.zeros(n),
-            "specular": np.zeros(n), "part": np.full(n, -1, dtype=np.int32)}
-
-
-def _take(best: dict, t, normal, albedo, specular, part) -> None:
-    """Keep the candidate hit where it is nearer (in place)."""
-    closer = (t > 0) & (t < best["t"])
-    if not np.any(closer):
-        return
-    best["t"] = np.where(closer, t, best["t"])
-    best["normal"] = np.where(closer[:, None], normal, best["normal"])
-    best["albedo"] = np.where(closer, albedo, best["albedo"])
-    best["specular"] = np.where(closer, specular, best["specular"])
-    best["part"] = np.where(closer, part, best["part"]).astype(np.int32)
-
-
 def _check_rays(origins, direction):
     o = np.asarray(origins, dtype=float)
     d = np.asarray(direction, dtype=float).reshape(-1)
@@ -102,73 +85,10 @@ def _check_rays(origins, direction):
     return o, d
 
 
-def _plane_z(o, d, z):
-    """Ray parameter where each ray meets the plane Z = z (inf if parallel)."""
-    dz = d[2] if d[2] != 0 else _TINY
-    return (z - o[:, 2]) / dz
-
-
-def _sphere_near(o, d, c, r):
-    """Nearest intersection parameter of rays with spheres (centres c (N, 3) or (3,),
-    radii r), computed from the closest approach for accuracy; inf where missed."""
-    p = o - c
-    tc = -(p @ d)
-    q = p + tc[:, None] * d
-    disc = r * r - np.einsum("ij,ij->i", q, q)
-    ok = disc >= 0
-    return np.where(ok, tc - np.sqrt(np.where(ok, disc, 0.0)), np.inf)
-
-
 def _face_ray(normal, d):
     """Flip normals to face the incoming ray."""
     s = np.where(normal @ d > 0, -1.0, 1.0)
     return normal * s[:, None]
-
-
-def _box_hits(o, d, lo, hi):
-    """Slab test: entry parameter and entry normal of rays into an axis-aligned box."""
-    dd = np.where(d == 0, _TINY, d)
-    t1 = (np.asarray(lo) - o) / dd
-    t2 = (np.asarray(hi) - o) / dd
-    tmin = np.minimum(t1, t2)
-    tmax = np.maximum(t1, t2)
-    axis = np.argmax(tmin, axis=1)
-    tnear = tmin[np.arange(len(o)), axis]
-    tfar = tmax.min(axis=1)
-    ok = (tnear <= tfar) & (tnear > 0)
-    normal = np.zeros((len(o), 3))
-    normal[np.arange(len(o)), axis] = -np.sign(dd[axis])
-    return np.where(ok, tnear, np.inf), normal
-
-
-@dataclass(frozen=True, eq=False)
-class _Posed:
-    """Mixin: a scene defined in its own frame, placed by (R_world_scene, t_world_scene)."""
-
-    def _to_local(self, o, d):
-        R = np.asarray(self.R_world_scene)
-        t = np.asarray(self.t_world_scene)
-        return _matmul_small(o - t, R), R.T @ d
-
-    def _to_world(self, best: dict) -> Hits:
-        R = np.asarray(self.R_world_scene)
-        return Hits(t=best["t"], normal=_matmul_small(best["normal"], R.T),
-                    albedo=best["albedo"], specular=best["specular"], part=best["part"])
-
-
-def _matmul_small(a, M):
-    """``a @ M`` for a (N, 3) and M (3, 3), column by column (matrix-vector products are
-    much faster than a tall-skinny matrix product here)."""
-    out = np.empty((a.shape[0], M.shape[1]))
-    for k in range(M.shape[1]):
-        out[:, k] = a @ np.ascontiguousarray(M[:, k])
-    return out
-
-
-def _up_normals(n: int) -> np.ndarray:
-    out = np.zeros((n, 3))
-    out[:, 2] = 1.0
-    return out
 
 
 def _frozen_array(a, shape=None, name="array"):
@@ -190,7 +110,7 @@ def _check_rotation(R, name):
 
 # --------------------------------------------------------------------------- circle plate
 @dataclass(frozen=True, eq=False)
-class CirclePlate(_Posed):
+class CirclePlate:
     """A flat plate with a grid of dark circles (the calibration target), at any pose.
 
     In the target frame the plate is Z = 0, circle (i, j) (row i, column j) is centred
@@ -237,22 +157,10 @@ class CirclePlate(_Posed):
 
     def intersect(self, origins, direction) -> Hits:
         o, d = _check_rays(origins, direction)
-        ol, dl = self._to_local(o, d)
-        best = _empty_hits(len(o))
-        t = _plane_z(ol, dl, 0.0)
-        p = ol + t[:, None] * dl
-        x0, x1 = -self.margin, (self.cols - 1) * self.pitch + self.margin
-        y0, y1 = -self.margin, (self.rows - 1) * self.pitch + self.margin
-        inside = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1)
-        j = np.clip(np.round(p[:, 0] / self.pitch), 0, self.cols - 1)
-        i = np.clip(np.round(p[:, 1] / self.pitch), 0, self.rows - 1)
-        r2 = (p[:, 0] - j * self.pitch) ** 2 + (p[:, 1] - i * self.pitch) ** 2
-        marker = r2 <= (self.diameter / 2) ** 2
-        normal = _face_ray(_up_normals(len(o)), dl)
-        _take(best, np.where(inside, t, np.inf), normal,
-              np.where(marker, self.marker_albedo, self.albedo), np.zeros(len(o)),
-              marker.astype(np.int32))
-        return self._to_world(best)
+        return Hits(*_k.plate_intersect(o, d, self.R_world_target, self.t_world_target,
+                                        int(self.rows), int(self.cols), float(self.pitch),
+                                        float(self.diameter) / 2, float(self.margin),
+                                        float(self.albedo), float(self.marker_albedo)))
 
     def circle_centres_world(self) -> np.ndarray:
         """Circle centres (rows * cols, 3) in world mm, row-major (row, col)."""
@@ -302,7 +210,7 @@ def plate_at_z(z: float = 0.0, *, target: CircleGridTarget | None = None, **kw) 
 
 # --------------------------------------------------------------------------- step gauge
 @dataclass(frozen=True, eq=False)
-class StepGauge(_Posed):
+class StepGauge:
     """Rectangular blocks standing on a base plate (Z = 0 of the scene frame).
 
     Parts: 0 the base plate, k + 1 block k (any of its faces).
@@ -335,21 +243,9 @@ class StepGauge(_Posed):
 
     def intersect(self, origins, direction) -> Hits:
         o, d = _check_rays(origins, direction)
-        ol, dl = self._to_local(o, d)
-        n = len(o)
-        best = _empty_hits(n)
-        x0, x1, y0, y1 = self.base
-        t = _plane_z(ol, dl, 0.0)
-        p = ol + t[:, None] * dl
-        inside = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1)
-        _take(best, np.where(inside, t, np.inf),
-              _face_ray(_up_normals(n), dl),
-              np.full(n, self.base_albedo), np.zeros(n), np.zeros(n, np.int32))
-        for k, b in enumerate(self.blocks):
-            tb, nb = _box_hits(ol, dl, b[[0, 2, 4]], b[[1, 3, 5]])
-            _take(best, tb, nb, np.full(n, self.albedo), np.zeros(n),
-                  np.full(n, k + 1, np.int32))
-        return self._to_world(best)
+        return Hits(*_k.boxes_intersect(o, d, self.R_world_scene, self.t_world_scene,
+                                        self.blocks, np.asarray(self.base, dtype=float),
+                                        float(self.albedo), float(self.base_albedo)))
 
     def z_range(self) -> tuple[float, float]:
         zs = [0.0] + list(self.blocks[:, 4]) + list(self.blocks[:, 5])
@@ -405,20 +301,9 @@ class Sphere:
 
     def intersect(self, origins, direction) -> Hits:
         o, d = _check_rays(origins, direction)
-        n = len(o)
-        best = _empty_hits(n)
-        t = _plane_z(o, d, self.plane_z)
-        p = o + t[:, None] * d
-        c = self.center
-        inside = np.max(np.abs(p[:, :2] - c[:2]), axis=1) <= self.plane_half_size
-        _take(best, np.where(inside, t, np.inf), _face_ray(_up_normals(n), d),
-              np.full(n, self.plane_albedo), np.zeros(n), np.zeros(n, np.int32))
-        ts = _sphere_near(o, d, c, self.radius)
-        ps = o + np.where(np.isfinite(ts), ts, 0.0)[:, None] * d
-        ts = np.where(ps[:, 2] >= self.plane_z, ts, np.inf)
-        _take(best, ts, (ps - c) / self.radius, np.full(n, self.albedo), np.zeros(n),
-              np.ones(n, np.int32))
-        return Hits(**best)
+        return Hits(*_k.sphere_intersect(o, d, self.center, float(self.radius),
+                                         float(self.plane_z), float(self.plane_half_size),
+                                         float(self.albedo), float(self.plane_albedo)))
 
     def z_range(self) -> tuple[float, float]:
         return float(self.plane_z), float(max(self.plane_z, self.center[2] + self.radius))
@@ -514,49 +399,20 @@ class BGA:
 
     def intersect(self, origins, direction) -> Hits:
         o, d = _check_rays(origins, direction)
-        n = len(o)
-        best = _empty_hits(n)
-        t = _plane_z(o, d, 0.0)
-        p = o + t[:, None] * d
-        x0 = self.origin[0] - self.chip_margin
-        x1 = self.origin[0] + (self.cols - 1) * self.pitch + self.chip_margin
-        y0 = self.origin[1] - self.chip_margin
-        y1 = self.origin[1] + (self.rows - 1) * self.pitch + self.chip_margin
-        chip = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1)
-        _take(best, t, _face_ray(_up_normals(n), d),
-              np.where(chip, self.substrate_albedo, self.board_albedo), np.zeros(n),
-              np.where(chip, 0, 1).astype(np.int32))
         r = self.radius
         hmax = float(np.max(self.ball_height + self.height_offsets))
-        # the ray's point at mid-height; any ball it can meet is within reach of it
-        tm = _plane_z(o, d, hmax / 2)
-        pm = o + tm[:, None] * d
+        # every ball a ray can meet is within reach of its point at mid-height
         half_span = 0.5 * hmax * np.hypot(d[0], d[1]) / max(abs(d[2]), 1e-12)
         reach = int(np.ceil((r + half_span) / self.pitch + 0.5))
-        jc = np.round((pm[:, 0] - self.origin[0]) / self.pitch).astype(np.int64)
-        ic = np.round((pm[:, 1] - self.origin[1]) / self.pitch).astype(np.int64)
-        present = self.present()
-        centres = self.centres_world()
-        for di in range(-reach, reach + 1):
-            for dj in range(-reach, reach + 1):
-                ii, jj = ic + di, jc + dj
-                ok = (ii >= 0) & (ii < self.rows) & (jj >= 0) & (jj < self.cols)
-                iic, jjc = np.clip(ii, 0, self.rows - 1), np.clip(jj, 0, self.cols - 1)
-                ok &= present[iic, jjc]
-                if not np.any(ok):
-                    continue
-                idx = np.nonzero(ok)[0]
-                c = centres[iic[idx], jjc[idx]]
-                ts = _sphere_near(o[idx], d, c, r)
-                ps = o[idx] + np.where(np.isfinite(ts), ts, 0.0)[:, None] * d
-                ts = np.where(ps[:, 2] >= 0.0, ts, np.inf)
-                tfull = np.full(n, np.inf)
-                tfull[idx] = ts
-                nfull = np.zeros((n, 3))
-                nfull[idx] = (ps - c) / r
-                _take(best, tfull, nfull, np.full(n, self.ball_albedo),
-                      np.full(n, self.ball_specular), np.full(n, 2, np.int32))
-        return Hits(**best)
+        chip = np.array([self.origin[0] - self.chip_margin,
+                         self.origin[0] + (self.cols - 1) * self.pitch + self.chip_margin,
+                         self.origin[1] - self.chip_margin,
+                         self.origin[1] + (self.rows - 1) * self.pitch + self.chip_margin])
+        centre_z = np.ascontiguousarray(self.centres_world()[..., 2])
+        return Hits(*_k.bga_intersect(o, d, self.origin, float(self.pitch), centre_z,
+                                      self.present(), float(r), chip, reach, hmax / 2,
+                                      float(self.substrate_albedo), float(self.board_albedo),
+                                      float(self.ball_albedo), float(self.ball_specular)))
 
     def z_range(self) -> tuple[float, float]:
         return 0.0, float(np.max(self.ball_height + self.height_offsets))
@@ -616,14 +472,7 @@ class TiltedPlane:
 
     def intersect(self, origins, direction) -> Hits:
         o, d = _check_rays(origins, direction)
-        n = len(o)
-        best = _empty_hits(n)
-        den = self.normal @ d
-        den = den if den != 0 else _TINY
-        t = ((self.point - o) @ self.normal) / den
-        _take(best, t, _face_ray(np.broadcast_to(self.normal, (n, 3)), d), np.full(n, self.albedo),
-              np.zeros(n), np.zeros(n, np.int32))
-        return Hits(**best)
+        return Hits(*_k.plane_intersect(o, d, self.normal, self.point, float(self.albedo)))
 
     def height_at(self, x, y):
         """Z of the plane at world (x, y) mm (arrays broadcast)."""
