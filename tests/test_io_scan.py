@@ -306,6 +306,40 @@ def test_long_values_are_shortened_in_messages():
 
 
 # --------------------------------------------------------------------------- on disk
+@pytest.fixture(scope="module")
+def stub_scan_dir(tmp_path_factory):
+    """A folder with empty files img_000.png .. img_199.png (load_* does not decode)."""
+    folder = tmp_path_factory.mktemp("stub_scan")
+    for k in range(200):
+        (folder / f"img_{k:03d}.png").write_bytes(b"")
+    for k in ("white", "black", "one_more"):
+        (folder / f"{k}.png").write_bytes(b"")
+    return folder
+
+
+@settings(max_examples=150, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(case=broken_scan_docs())
+def test_broken_scan_manifests_on_disk(stub_scan_dir, case):
+    """The same through load_scan_manifest: JSON text (NaN / Infinity literals from
+    json.dumps), image paths checked against a real folder."""
+    doc, tokens = case
+    path = stub_scan_dir / "scan.json"
+    path.write_text(json.dumps(doc))
+    msg = str(pytest.raises(InputError, load_scan_manifest, stub_scan_dir).value)
+    assert msg.startswith(str(path) + ":")
+    for token in tokens:
+        assert token in msg, (token, msg)
+
+
+@settings(max_examples=40, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(doc=valid_scan_docs())
+def test_valid_scan_manifests_on_disk(stub_scan_dir, doc):
+    (stub_scan_dir / "scan.json").write_text(json.dumps(doc))
+    assert scan_manifest_to_json(load_scan_manifest(stub_scan_dir)) == _normalised(doc)
+
+
 def png_bytes(width, height, depth, color, rows):
     """A hand-made PNG (any header, any rows) so that hostile headers can be written."""
     def chunk(kind, data):
@@ -628,6 +662,27 @@ def test_broken_calibration_manifests_are_refused(case):
     doc, tokens = case
     msg = str(pytest.raises(InputError, parse_calibration_manifest, doc, where=CWHERE).value)
     assert msg.startswith(CWHERE + ":")
+    for token in tokens:
+        assert token in msg, (token, msg)
+
+
+@pytest.fixture(scope="module")
+def stub_cal_dir(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("stub_cal")
+    for p in ("pose_00", "pose_01"):
+        _make_scan(folder / p)
+    return folder
+
+
+@settings(max_examples=120, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(case=broken_cal_docs())
+def test_broken_calibration_manifests_on_disk(stub_cal_dir, case):
+    doc, tokens = case
+    path = stub_cal_dir / "calibration.json"
+    path.write_text(json.dumps(doc))
+    msg = str(pytest.raises(InputError, load_calibration_set, stub_cal_dir).value)
+    assert msg.startswith(str(path) + ":")
     for token in tokens:
         assert token in msg, (token, msg)
 
