@@ -234,6 +234,13 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
     if idx.size > max_samples:  # regular subsample (deterministic)
         idx = idx[np.linspace(0, idx.size - 1, max_samples).astype(np.int64)]
     samp = [p.ravel()[idx] for p in ph]
+    # a harmonic needs the phases to cover the circle: with K distinct (equally spaced)
+    # values, orders m and K - m alias; keep m < K / 4 (K counted in 4096 bins)
+    for g in range(n):
+        occupied = np.count_nonzero(np.bincount(
+            np.clip(((samp[g] + np.pi) * (4096 / TWO_PI)).astype(np.int64), 0, 4095),
+            minlength=4096))
+        harm[g] = [m for m in harm[g] if 4 * m < occupied]
     sig = None if sigmas is None else [np.asarray(s, dtype=np.float64).ravel()[idx]
                                        for s in sigmas]
     absol = None if absolute is None else [None if x is None else

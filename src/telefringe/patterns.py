@@ -11,7 +11,8 @@ import numpy as np
 
 from .scan import GrayGroup, PhaseGroup
 
-__all__ = ["fringe_intensity", "gray_code_bits", "pattern_stack", "quantize"]
+__all__ = ["fringe_intensity", "gray_code_bits", "pattern_stack", "quantize",
+           "pattern_groups", "precompensate", "pattern_scan"]
 
 
 def fringe_intensity(x, *, periods: int, steps: int, k: int, length: int,
@@ -75,3 +76,89 @@ def pattern_stack(group: PhaseGroup | GrayGroup, *, width: int, height: int,
         return np.ascontiguousarray(np.broadcast_to(rows[:, None, :],
                                                     (rows.shape[0], height, width)))
     return np.ascontiguousarray(np.broadcast_to(rows[:, :, None], (rows.shape[0], height, width)))
+
+
+# ------------------------------------------------------------------ pattern sets (decode)
+def pattern_groups(*, steps: int, periods, axes=("u", "v"), gray_bits: int | None = None,
+                   complementary: bool = True, offset: float = 0.0) -> tuple:
+    """The groups of a pattern set: for each axis, one ``steps``-step phase group per
+    period count (coarse to fine), then the Gray code (``gray_bits``) if asked.
+
+    Returns
+    -------
+    tuple of PhaseGroup / GrayGroup (no image names).
+    """
+    groups = []
+    for axis in axes:
+        for p in sorted(int(q) for q in periods):
+            groups.append(PhaseGroup(axis=axis, periods=p, steps=int(steps), offset=offset))
+        if gray_bits:
+            groups.append(GrayGroup(axis=axis, bits=int(gray_bits),
+                                    complementary=bool(complementary)))
+    return tuple(groups)
+
+
+def precompensate(values, *, gamma: float | None = None, inverse_response=None) -> np.ndarray:
+    """Pattern levels that make a nonlinear projector emit ``values`` (relative, 0..1).
+
+    A projector emitting ``black + (1 - black) * p**gamma`` for level p emits an affine
+    function of ``values`` when shown ``values**(1/gamma)``. For a measured response,
+    pass ``inverse_response`` (a callable: wanted relative output -> level, e.g.
+    :meth:`telefringe.gamma.ResponseCurve.inverse`).
+
+    Parameters
+    ----------
+    values : array_like, relative intensities in [0, 1].
+    gamma : float > 0 or None.  inverse_response : callable or None (exactly one of them).
+
+    Returns
+    -------
+    ndarray of float, levels in [0, 1].
+    """
+    v = np.clip(np.asarray(values, dtype=float), 0.0, 1.0)
+    if (gamma is None) == (inverse_response is None):
+        raise ValueError("precompensate needs exactly one of gamma and inverse_response")
+    if gamma is not None:
+        if not (np.isfinite(gamma) and gamma > 0):
+            raise ValueError(f"gamma must be finite and > 0, got {gamma!r}")
+        return v ** (1.0 / float(gamma))
+    return np.clip(np.asarray(inverse_response(v), dtype=float), 0.0, 1.0)
+
+
+def pattern_scan(*, width: int, height: int, steps: int, periods, axes=("u", "v"),
+                 gray_bits: int | None = None, complementary: bool = True,
+                 white_black: bool = True, offset: float = 0.0, gamma: float | None = None,
+                 inverse_response=None, bit_depth: int = 8):
+    """The projector images of a whole pattern set as a :class:`~telefringe.scan.Scan`
+    (stacks shaped (count, height, width); white/black frames when asked), ready for
+    :func:`telefringe.io.scan.write_scan`. With ``gamma`` or ``inverse_response`` the
+    fringes are pre-compensated (see :func:`precompensate`); Gray codes and white/black
+    frames are binary and need none.
+    """
+    from .scan import Scan, ScanManifest
+
+    groups = pattern_groups(steps=steps, periods=periods, axes=axes, gray_bits=gray_bits,
+                            complementary=complementary, offset=offset)
+    top = 2 ** bit_depth - 1
+    dtype = np.uint8 if bit_depth <= 8 else np.uint16
+    stacks = []
+    for g in groups:
+        if isinstance(g, PhaseGroup) and (gamma is not None or inverse_response is not None):
+            length = width if g.axis == "u" else height
+            coord = np.arange(length, dtype=float)
+            rows = np.stack([quantize(precompensate(
+                fringe_intensity(coord, periods=g.periods, steps=g.steps, k=k, length=length,
+                                 offset=g.offset), gamma=gamma,
+                inverse_response=inverse_response), bit_depth=bit_depth)
+                for k in range(g.steps)])
+            shape = (rows.shape[0], height, width)
+            img = rows[:, None, :] if g.axis == "u" else rows[:, :, None]
+            stacks.append(np.ascontiguousarray(np.broadcast_to(img, shape)))
+        else:
+            stacks.append(pattern_stack(g, width=width, height=height, bit_depth=bit_depth))
+    white = np.full((height, width), top, dtype=dtype) if white_black else None
+    black = np.zeros((height, width), dtype=dtype) if white_black else None
+    man = ScanManifest(projector_width=int(width), projector_height=int(height),
+                       groups=groups)
+    return Scan(manifest=man, stacks=tuple(stacks), white=white, black=black,
+                max_value=float(top), source="patterns")

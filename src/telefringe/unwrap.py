@@ -485,9 +485,9 @@ def unwrap_gray(phase, images, threshold, *, bits: int, complementary: bool, len
     (its contrast less than half the other's; the phase and the code may disagree by a
     fraction of a pixel at an edge).
 
-    Reliability: a pixel is unreliable when a bit read with contrast >= ``min_contrast``
-    disagrees with the bit expected within a pixel of the decoded coordinate, and, for
-    the plain code,
+    Reliability: a pixel is unreliable when a clear bit (contrast >= ``min_contrast`` and
+    >= a quarter of the median contrast of the pixel's bits) disagrees with the bit
+    expected within 2 projector pixels of the decoded coordinate, and, for the plain code,
     near a block edge where both edge bits are unclear and alike.
 
     Parameters
@@ -511,7 +511,10 @@ def unwrap_gray(phase, images, threshold, *, bits: int, complementary: bool, len
                          f" needs {need} images, got stack of shape {imgs.shape}")
     code = decode_gray(imgs, threshold)
     periods = 2 ** bits
-    clear = code.contrast >= min_contrast
+    # a bit is clear when its contrast beats the noise and a quarter of the pixel's typical
+    # bit contrast (a bit inside a blurred edge is neither)
+    typical = np.median(code.contrast, axis=0)
+    clear = code.contrast >= np.maximum(min_contrast, 0.25 * typical)
     ambiguous = np.zeros(phase.shape, dtype=bool)
     if complementary:
         h = code.index
@@ -534,10 +537,11 @@ def unwrap_gray(phase, images, threshold, *, bits: int, complementary: bool, len
         ambiguous = (near_start | near_end) & (lo < min_contrast) & (hi < 2.0 * lo)
     absolute = phase + TWO_PI * order
     x = absolute * length / (TWO_PI * periods)
-    # a clear bit must match the code at the decoded coordinate, give or take a pixel
-    # (an order error moves x by a whole period, L / 2**bits pixels)
+    # a clear bit must match the code at the decoded coordinate, give or take a couple of
+    # pixels (an order error moves x by a whole period, L / 2**bits pixels)
+    tol = min(2.0, length / periods / 4.0)
     mismatch = clear.copy()
-    for dx in (-1.0, 0.0, 1.0):
+    for dx in (-tol, -0.5 * tol, 0.0, 0.5 * tol, tol):
         expect = gray_bits_at(x + dx, bits=bits, length=length, complementary=complementary)
         mismatch &= expect != code.bits
     bad = np.any(mismatch, axis=0) | ambiguous
