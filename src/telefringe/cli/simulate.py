@@ -1,10 +1,166 @@
-"""`telefringe simulate` command(s)."""
+"""`telefringe simulate` commands: calibration sets and scans from the virtual rig.
+
+Output layout (OUT is a new folder; ground truth is never inside a scan folder)::
+
+    OUT/calibration/           a calibration set (calibration.json + pose_00, pose_01, ...)
+    OUT/scan/                  a scan folder (scan.json + PNG images)
+    OUT/truth/                 rig_true.json and, per scan, NAME.npz + NAME.json
+"""
 
 from __future__ import annotations
 
+from enum import StrEnum
+from pathlib import Path
+
 import typer
+
+from ._common import detail, info, progress_bar
+
+__all__ = ["register"]
+
+
+class _Rig(StrEnum):
+    paper = "paper"
+    fast = "fast"
+
+
+class _Scene(StrEnum):
+    plate = "plate"
+    steps = "steps"
+    sphere = "sphere"
+    bga = "bga"
+    tilted_plane = "tilted-plane"
+
+
+def _advance_by(advance):
+    """Adapt a bar's ``advance(n)`` to a ``progress(done, total)`` callback."""
+    state = {"done": 0}
+
+    def progress(done, total):
+        del total
+        if done > state["done"]:
+            advance(done - state["done"])
+            state["done"] = done
+
+    return progress
+
+
+def _check_options(*, seed: int, poses: int | None = None, z: float | None = None,
+                   bit_depth: int | None = None):
+    from ..io.errors import InputError
+
+    if seed < 0:
+        raise InputError(f"--seed must be >= 0, got {seed}")
+    if poses is not None and not 4 <= poses <= 200:
+        raise InputError(f"--poses must be between 4 and 200, got {poses}")
+    if z is not None and not -10.0 <= z <= 10.0:
+        raise InputError(f"--z must be within +-10 mm (the depth of field is 5 mm), got {z}")
+    if bit_depth is not None and bit_depth not in (8, 12, 16):
+        raise InputError(f"--bit-depth must be 8, 12 or 16, got {bit_depth}")
+
+
+def calibration(
+    out: Path = typer.Argument(..., help="New folder to create (OUT/calibration, OUT/truth)."),
+    rig: _Rig = typer.Option(_Rig.paper, "--rig", help="Virtual rig preset."),
+    poses: int = typer.Option(12, "--poses", help="Number of plate poses (reference first)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of poses and noise."),
+    bit_depth: int = typer.Option(8, "--bit-depth", help="Camera bit depth: 8, 12 or 16."),
+    force: bool = typer.Option(False, "--force", help="Replace OUT if it exists."),
+):
+    """Simulate a calibration set: the 9 x 11 circle plate at several poses.
+
+    Example: telefringe simulate calibration sim_cal --rig paper --poses 12
+    """
+    from ..io.atomic import atomic_dir, check_can_write
+    from ..io.scan import write_calibration_manifest, write_scan
+    from ..io.truth import write_rig_truth, write_truth
+    from ..simulate.calibration import (
+        calibration_manifest,
+        iter_calibration_set,
+        simulate_calibration_poses,
+    )
+    from ..simulate.presets import get_preset
+
+    _check_options(seed=seed, poses=poses, bit_depth=bit_depth)
+    check_can_write(out, force=force)
+    vrig = get_preset(rig.value)
+    if bit_depth != vrig.photometry.bit_depth:
+        vrig = vrig.with_photometry(bit_depth=bit_depth)
+    pose_list = simulate_calibration_poses(vrig, n_poses=poses, seed=seed)
+    man = calibration_manifest(vrig, pose_list)
+    with atomic_dir(out, force=force) as tmp:
+        cal_dir = tmp / "calibration"
+        truth_dir = tmp / "truth"
+        cal_dir.mkdir()
+        truth_dir.mkdir()
+        write_rig_truth(truth_dir, vrig)
+        with progress_bar(f"rendering {len(pose_list)} poses ({vrig.name} rig)",
+                          len(pose_list)) as advance:
+            for name, scan, truth, pose in iter_calibration_set(
+                    vrig, pose_list, seed=seed, progress=_advance_by(advance)):
+                write_scan(cal_dir / name, scan)
+                write_truth(truth_dir, name, truth,
+                            extra={"pose": {"kind": pose.kind,
+                                            "R_world_target": pose.R_world_target,
+                                            "t_world_target": pose.t_world_target}})
+                detail(f"{name}: {pose.kind}")
+        write_calibration_manifest(cal_dir, man)
+    info(f"wrote {out / 'calibration'} ({len(pose_list)} poses) and the ground truth in "
+         f"{out / 'truth'}")
+
+
+def scan(
+    out: Path = typer.Argument(..., help="New folder to create (OUT/scan, OUT/truth)."),
+    scene: _Scene = typer.Option(..., "--scene", help="What to scan."),
+    rig: _Rig = typer.Option(_Rig.paper, "--rig", help="Virtual rig preset."),
+    z: float = typer.Option(0.0, "--z", help="Raise the scene by this many mm (not bga)."),
+    hdr: bool = typer.Option(False, "--hdr", help="Three exposures (1, 0.3, 0.1) per group."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the scene (bga) and the noise."),
+    bit_depth: int = typer.Option(8, "--bit-depth", help="Camera bit depth: 8, 12 or 16."),
+    force: bool = typer.Option(False, "--force", help="Replace OUT if it exists."),
+):
+    """Simulate one scan of a scene (4-step fringes, 1/8/64 periods along u, 1/8/48
+    along v, white and black frames).
+
+    Example: telefringe simulate scan sim_bga --scene bga --hdr
+    """
+    from ..io.atomic import atomic_dir, check_can_write
+    from ..io.errors import InputError
+    from ..io.scan import write_scan
+    from ..io.truth import write_rig_truth, write_truth
+    from ..simulate.presets import HDR_EXPOSURES, get_preset
+    from ..simulate.render import default_groups, render_scan
+    from ..simulate.scenes import make_scene
+
+    _check_options(seed=seed, z=z, bit_depth=bit_depth)
+    check_can_write(out, force=force)
+    if scene is _Scene.bga and z != 0.0:
+        raise InputError("--z is not available for the bga scene (it sits at Z = 0)")
+    vrig = get_preset(rig.value)
+    if bit_depth != vrig.photometry.bit_depth:
+        vrig = vrig.with_photometry(bit_depth=bit_depth)
+    sc = make_scene(scene.value, z=z, seed=seed)
+    exposures = HDR_EXPOSURES if hdr else (1.0,)
+    groups = default_groups(vrig)
+    total = sum(g.count for g in groups) * len(exposures) + 2 + 4
+    with atomic_dir(out, force=force) as tmp:
+        with progress_bar(f"rendering {scene.value} ({vrig.name} rig)", total) as advance:
+            result, truth = render_scan(vrig, sc, groups, exposures=exposures,
+                                        seed=seed, progress=_advance_by(advance))
+        write_scan(tmp / "scan", result)
+        (tmp / "truth").mkdir()
+        write_rig_truth(tmp / "truth", vrig)
+        write_truth(tmp / "truth", "scan", truth,
+                    extra={"scene": scene.value, "z_mm": z, "exposures": list(exposures),
+                           "seed": seed})
+    n = sum(s.shape[0] for s in result.stacks) + 2
+    info(f"wrote {out / 'scan'} ({n} images) and the ground truth in {out / 'truth'}")
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's command(s) to the app (filled in by the simulate work)."""
-    del app
+    """Add ``telefringe simulate calibration|scan``."""
+    sim = typer.Typer(name="simulate", no_args_is_help=True,
+                      help="Render calibration sets and scans with the virtual rig.")
+    sim.command("calibration")(calibration)
+    sim.command("scan")(scan)
+    app.add_typer(sim, name="simulate")

@@ -540,3 +540,20 @@ def plane_intersect(o, d, normal, point, albedo):
             alb[i] = albedo
             part[i] = 0
     return t_out, nrm, alb, spec, part
+
+
+@numba.njit(cache=True, parallel=True)
+def sensor_counts(signal_e, normal, read_e, dn_per_e, full_scale, out):
+    """Shot + read noise (Gaussian approximation), quantisation and saturation.
+
+    signal_e (rows, cols) mean electrons; normal (rows, cols) standard normal deviates;
+    out (rows, cols) integer counts in [0, full_scale] (written).
+    """
+    rows, cols = signal_e.shape
+    r2 = read_e * read_e
+    for r in numba.prange(rows):
+        for c in range(cols):
+            e = signal_e[r, c]
+            sd = math.sqrt(max(e, 0.0) + r2)
+            dn = np.round((e + sd * normal[r, c]) * dn_per_e)
+            out[r, c] = min(max(dn, 0.0), full_scale)

@@ -69,11 +69,17 @@ class Photometry:
         Projector defocus: Gaussian sigma in projector pixels, convolved exactly with
         the projector's square pixels (fill factor 1).
     supersample : int
-        Camera integration: ``supersample`` x ``supersample`` rays per pixel (midpoint
-        rule over the square pixel).
+        Camera integration over the square pixel: at least ``supersample`` x
+        ``supersample`` midpoint rays on pixels that straddle an edge (and on every
+        pixel when ``smooth_gauss`` is 0).
     edge_supersample : int
-        Rays per pixel side on pixels that straddle an edge (marker, ball, shadow, step
-        wall, silhouette), found from the first pass; 0 disables the refinement.
+        Midpoint rays per pixel side on pixels that straddle an edge (marker, ball,
+        shadow, step wall, silhouette), traced exactly (the larger of this and
+        ``supersample`` is used).
+    smooth_gauss : int
+        Pixels that see one smooth surface patch integrate with the 2 x 2
+        Gauss-Legendre rule (2, exact for cubics), the centre only (1) or the
+        ``supersample`` midpoint grid (0).
     specular_sigma_deg : float
         Width (Gaussian sigma, deg) of the specular lobe around the mirror direction
         (surface roughness and the illumination aperture together).
@@ -90,7 +96,8 @@ class Photometry:
     camera_blur_px: float = 0.5
     projector_blur_px: float = 0.6
     supersample: int = 3
-    edge_supersample: int = 9
+    edge_supersample: int = 7
+    smooth_gauss: int = 2
     specular_sigma_deg: float = 6.0
 
     def __post_init__(self):
@@ -113,6 +120,8 @@ class Photometry:
             raise ValueError("Photometry.supersample must be >= 1")
         if int(self.edge_supersample) < 0:
             raise ValueError("Photometry.edge_supersample must be >= 0")
+        if self.smooth_gauss not in (0, 1, 2):
+            raise ValueError("Photometry.smooth_gauss must be 0, 1 or 2")
         if not (np.isfinite(self.specular_sigma_deg) and self.specular_sigma_deg > 0):
             raise ValueError("Photometry.specular_sigma_deg must be > 0")
 

@@ -15,8 +15,10 @@ Physics, in the order light meets it
    ``rig.projector.project`` (distortion included); a ray toward the projector tests for
    shadow. Lambertian ``albedo * cos(incidence)``, plus a Gaussian specular lobe around
    the mirror direction for shiny parts, plus ambient light ``ambient * albedo``.
-3. Camera: ``supersample`` x ``supersample`` rays per pixel (and ``edge_supersample``
-   per side on pixels that straddle an edge), Gaussian defocus (discrete normalised
+3. Camera: integration over each square pixel: 2 x 2 Gauss-Legendre samples on pixels
+   that see one smooth surface patch, ``edge_supersample`` x ``edge_supersample`` (>=
+   ``supersample``) exactly traced midpoint samples on pixels that straddle an edge
+   (marker, ball, shadow, wall, silhouette); Gaussian defocus (discrete normalised
    kernel), exposure, shot noise (Gaussian approximation of Poisson, in electrons) and
    read noise, quantisation to ``bit_depth`` bits, saturation.
 
@@ -30,7 +32,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 from scipy.special import ndtr
 
 from ..model import ConvergenceError
@@ -210,7 +211,7 @@ class Geometry:
     shape : (rows, cols) of the traced image: the camera image grown by ``pad`` pixels
         on each side, so that the camera blur sees the scene beyond the sensor's edge.
     pad : int.
-    n1 : int, samples per pixel of the first pass (supersample**2).
+    n1 : int, samples per smooth pixel.
     cu1, cv1 : (rows * cols * n1,) projector coordinates of each sample.
     wu1, wv1 : (rows * cols * n1,) float32, weight of each sample for u- and v-axis
         patterns (8-bit DN at exposure 1 per unit emitted intensity, / n1, with the
@@ -241,6 +242,17 @@ class Geometry:
 def _blur_pad(sigma: float) -> int:
     """Margin (pixels) the camera blur reaches beyond the image (4 sigma kernel)."""
     return int(np.ceil(4.0 * sigma)) if sigma > 0 else 0
+
+
+def _smooth_offsets(ph) -> np.ndarray:
+    """Sample offsets (n, 2) on smooth pixels (equal weights): Gauss-Legendre 2 x 2
+    (exact for cubics), the centre only, or the midpoint grid of ``supersample``."""
+    if ph.smooth_gauss == 2:
+        a = 0.5 / np.sqrt(3.0)
+        return np.array([[-a, -a], [a, -a], [-a, a], [a, a]])
+    if ph.smooth_gauss == 1:
+        return np.zeros((1, 2))
+    return _sub_offsets(int(ph.supersample))
 
 
 def _sub_offsets(n: int) -> np.ndarray:
@@ -373,11 +385,12 @@ def trace_geometry(vrig: VirtualRig, scene, *, exact: bool = False) -> Geometry:
     """Trace the camera's pixels into ``scene`` once: everything but the pattern.
 
     Pixel centres are traced exactly. Where a pixel and its 8 neighbours see one smooth
-    surface patch, its ``supersample``**2 sub-samples take their projector coordinates
-    and weights from the quadratic through the 9 centres (error bounded by a test);
-    every other pixel (edges of markers, balls, shadows, walls, silhouettes, and the
-    image border) traces ``edge_supersample``**2 sub-samples exactly
-    (``supersample``**2 if that is larger). ``exact=True`` traces every sub-sample.
+    surface patch, the pixel integral uses the 2 x 2 Gauss-Legendre rule (exact for
+    cubics; ``photometry.smooth_gauss``) whose sub-samples take their projector
+    coordinates and weights from the quadratic through the 9 centres (errors bounded by
+    tests); every other pixel (edges of markers, balls, shadows, walls, silhouettes, and
+    the image border) traces ``max(edge_supersample, supersample)``**2 midpoint
+    sub-samples exactly. ``exact=True`` traces every pixel that way.
     """
     ph = vrig.photometry
     rows0, cols0 = vrig.camera.intrinsics.shape
@@ -387,25 +400,18 @@ def trace_geometry(vrig: VirtualRig, scene, *, exact: bool = False) -> Geometry:
     E = max(int(ph.edge_supersample), S)
     c = _trace_centres(vrig, scene, rows0, cols0, pad)
     smooth = _smooth_mask(c) if not exact else np.zeros((rows, cols), dtype=bool)
-    n1 = S * S
-    if S == 1:
-        cu1 = np.nan_to_num(c["up"], nan=_FAR).ravel()
-        cv1 = np.nan_to_num(c["vp"], nan=_FAR).ravel()
-        wu1 = c["wu"].astype(np.float32).ravel()
-        wv1 = c["wv"].astype(np.float32).ravel()
-        amb = c["ambient"].ravel().copy()
-    else:
-        offs = _sub_offsets(S)
-        npx = rows * cols * n1
-        cu1 = np.empty(npx)
-        cv1 = np.empty(npx)
-        wu1 = np.empty(npx, dtype=np.float32)
-        wv1 = np.empty(npx, dtype=np.float32)
-        _k.interp_samples(np.nan_to_num(c["up"], nan=_FAR), offs, 1.0, cu1)
-        _k.interp_samples(np.nan_to_num(c["vp"], nan=_FAR), offs, 1.0, cv1)
-        _k.interp_samples(c["wu"], offs, 1.0 / n1, wu1)
-        _k.interp_samples(c["wv"], offs, 1.0 / n1, wv1)
-        amb = c["ambient"].ravel().copy()
+    offs = _smooth_offsets(ph)
+    n1 = len(offs)
+    npx = rows * cols * n1
+    cu1 = np.empty(npx)
+    cv1 = np.empty(npx)
+    wu1 = np.empty(npx, dtype=np.float32)
+    wv1 = np.empty(npx, dtype=np.float32)
+    _k.interp_samples(np.nan_to_num(c["up"], nan=_FAR), offs, 1.0, cu1)
+    _k.interp_samples(np.nan_to_num(c["vp"], nan=_FAR), offs, 1.0, cv1)
+    _k.interp_samples(c["wu"], offs, 1.0 / n1, wu1)
+    _k.interp_samples(c["wv"], offs, 1.0 / n1, wv1)
+    amb = c["ambient"].ravel().copy()
     edge_pix = np.flatnonzero(~smooth)
     vv, uu = np.divmod(edge_pix, cols)
     cu2, cv2, wu2, wv2, amb2 = _trace_samples(vrig, scene, uu.astype(float) - pad,
@@ -479,30 +485,38 @@ def _integrate(geom: Geometry, vrig: VirtualRig, axis: str, levels: np.ndarray) 
     return out.reshape(geom.shape)
 
 
+def _blur_kernel(sigma: float) -> np.ndarray:
+    """Normalised sampled Gaussian, radius ceil(4 sigma) (the camera's defocus PSF)."""
+    r = _blur_pad(sigma)
+    x = np.arange(-r, r + 1, dtype=float)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    return k / k.sum()
+
+
 def _sensor(signal_dn8: np.ndarray, vrig: VirtualRig, exposure: float,
             rng: np.random.Generator, pad: int) -> np.ndarray:
     """Camera: defocus, exposure, shot + read noise, quantisation, saturation.
 
     ``signal_dn8`` covers the image grown by ``pad`` pixels per side (cropped here after
-    the blur)."""
+    the blur, so the blur sees the scene beyond the sensor's edge).
+    """
+    import cv2
+
     ph = vrig.photometry
-    s = signal_dn8 * exposure
+    s = np.asarray(signal_dn8, dtype=np.float64) * (exposure * ph.full_well_e / 255.0)
     if ph.camera_blur_px > 0:
-        s = gaussian_filter(s, ph.camera_blur_px, mode="nearest", truncate=4.0)
+        k = _blur_kernel(ph.camera_blur_px)
+        s = cv2.sepFilter2D(s, cv2.CV_64F, k, k, borderType=cv2.BORDER_REPLICATE)
     if pad:
         s = s[pad:-pad, pad:-pad]
-    e_per_dn8 = ph.full_well_e / 255.0
-    electrons = s * e_per_dn8
-    sigma_e = np.sqrt(np.maximum(electrons, 0.0) + ph.read_noise_e ** 2)
-    electrons = electrons + sigma_e * rng.standard_normal(electrons.shape)
+    s = np.ascontiguousarray(s)
+    normal = rng.standard_normal(s.shape, dtype=np.float32)
     full = ph.full_scale_dn
-    dn = np.clip(np.round(electrons / ph.full_well_e * full), 0, full)
-    if ph.bit_depth == 8:
-        return dn.astype(np.uint8)
-    q = dn.astype(np.uint16)
+    out = np.empty(s.shape, dtype=np.uint8 if ph.bit_depth == 8 else np.uint16)
+    _k.sensor_counts(s, normal, float(ph.read_noise_e), full / ph.full_well_e, full, out)
     if ph.bit_depth == 12:  # MSB-aligned, top bits replicated: 4095 -> 65535
-        return (q << 4) | (q >> 8)
-    return q
+        return (out << 4) | (out >> 8)
+    return out
 
 
 def render_images(geom: Geometry, vrig: VirtualRig, axis: str, levels: np.ndarray, *,

@@ -1,0 +1,155 @@
+"""Ground truth of the virtual rig on disk, kept apart from the scan folders.
+
+A truth folder (e.g. ``OUT/truth/``) holds, per rendered scan ``NAME``:
+
+- ``NAME.npz``: arrays ``xyz_world`` (rows, cols, 3) mm (NaN where not lit/visible),
+  ``u_p``, ``v_p`` (rows, cols) projector px (NaN where not lit), ``lit``, ``visible``
+  (bool), ``part`` (int), and the array-valued features as ``feature__KEY``;
+- ``NAME.json``: the scene's features (readable: circle centres, step heights, sphere,
+  ball apexes, ...) and, when given, the true rig.
+
+and ``rig_true.json``: the virtual rig's true camera and projector (intrinsics, rotation
+vector, translation) and photometry. A truth folder is refused inside a scan folder (a
+folder holding ``scan.json``), so a decoder can never read the answer by accident.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_file, write_json_atomic
+from .errors import InputError
+
+__all__ = ["write_truth", "read_truth", "truth_features_to_json", "rig_to_json",
+           "write_rig_truth", "TRUTH_FORMAT"]
+
+TRUTH_FORMAT = "telefringe-truth"
+_ARRAYS = ("xyz_world", "u_p", "v_p", "lit", "visible", "part")
+
+
+def _to_jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _to_jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_to_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _to_jsonable(x.tolist())
+    if isinstance(x, np.bool_ | bool):
+        return bool(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.floating | float):
+        v = float(x)
+        return v if np.isfinite(v) else None
+    return x
+
+
+def truth_features_to_json(features: dict) -> dict:
+    """Features as plain JSON values (arrays become nested lists, NaN becomes null)."""
+    return _to_jsonable(features)
+
+
+def _device_json(dev) -> dict:
+    k = dev.intrinsics
+    return {"intrinsics": {f.name: getattr(k, f.name) for f in dataclasses.fields(k)},
+            "R_dev_world": dev.R_dev_world.tolist(), "rotvec": dev.rotvec.tolist(),
+            "t_dev_mm": dev.t_dev.tolist(),
+            "axis_world": dev.axis_world.tolist()}
+
+
+def rig_to_json(vrig) -> dict:
+    """The true rig of a :class:`~telefringe.simulate.presets.VirtualRig` as JSON."""
+    return _to_jsonable({
+        "format": TRUTH_FORMAT + "-rig", "version": 1, "name": vrig.name,
+        "camera": _device_json(vrig.camera), "projector": _device_json(vrig.projector),
+        "photometry": dataclasses.asdict(vrig.photometry),
+        "target": dataclasses.asdict(vrig.target),
+        "world_frame": "calibration target at its reference pose (x along columns, y along "
+                       "rows, z toward the camera)",
+    })
+
+
+def _check_not_in_scan(folder: Path) -> None:
+    for p in (folder, *folder.resolve().parents):
+        if (p / "scan.json").is_file():
+            raise InputError(f"{folder}: refusing to write ground truth inside a scan folder "
+                             f"({p} holds scan.json)")
+
+
+def write_rig_truth(folder, vrig, *, force: bool = True) -> Path:
+    """Write ``folder/rig_true.json`` (the folder must exist)."""
+    folder = Path(folder)
+    _check_not_in_scan(folder)
+    path = folder / "rig_true.json"
+    write_json_atomic(path, rig_to_json(vrig), force=force)
+    return path
+
+
+def write_truth(folder, name: str, truth, *, extra: dict | None = None,
+                force: bool = True) -> tuple[Path, Path]:
+    """Write ``folder/NAME.npz`` and ``folder/NAME.json`` (atomically each).
+
+    ``truth``: a :class:`~telefringe.simulate.render.Truth`. ``extra``: more JSON to
+    keep beside the features (e.g. the pose). The folder is created if needed; it must
+    not be (inside) a scan folder.
+    """
+    folder = Path(folder)
+    if not name or "/" in name or name.startswith("."):
+        raise ValueError(f"bad truth name {name!r}")
+    folder.mkdir(parents=True, exist_ok=True)
+    _check_not_in_scan(folder)
+    arrays = {k: np.asarray(getattr(truth, k)) for k in _ARRAYS if getattr(truth, k) is not None}
+    for k, v in truth.features.items():
+        if isinstance(v, np.ndarray):
+            arrays[f"feature__{k}"] = v
+    npz = folder / f"{name}.npz"
+    with atomic_file(npz, force=force) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+    doc = {"format": TRUTH_FORMAT, "version": 1, "name": name,
+           "shape": list(truth.lit.shape), "arrays": f"{name}.npz",
+           "lit_pixels": int(np.count_nonzero(truth.lit)),
+           "features": truth_features_to_json(truth.features)}
+    if extra:
+        doc.update(_to_jsonable(extra))
+    js = folder / f"{name}.json"
+    write_json_atomic(js, doc, force=force)
+    return npz, js
+
+
+def read_truth(folder, name: str):
+    """Read ``folder/NAME.npz`` + ``NAME.json`` back into a
+    :class:`~telefringe.simulate.render.Truth` (array features from the npz, the rest
+    from the JSON)."""
+    from ..simulate.render import Truth
+
+    folder = Path(folder)
+    npz, js = folder / f"{name}.npz", folder / f"{name}.json"
+    for p in (npz, js):
+        if not p.is_file():
+            raise InputError(f"{p}: ground truth file not found")
+    try:
+        doc = json.loads(js.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"{js}: cannot read ground truth ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != TRUTH_FORMAT:
+        raise InputError(f"{js}: not a telefringe ground-truth file")
+    try:
+        with np.load(npz, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{npz}: cannot read ground truth arrays ({exc})") from None
+    missing = [k for k in ("xyz_world", "u_p", "v_p", "lit") if k not in arrays]
+    if missing:
+        raise InputError(f"{npz}: missing arrays {missing}")
+    features = dict(doc.get("features", {}))
+    for k, v in arrays.items():
+        if k.startswith("feature__"):
+            features[k[len("feature__"):]] = v
+    return Truth(xyz_world=arrays["xyz_world"], u_p=arrays["u_p"], v_p=arrays["v_p"],
+                 lit=arrays["lit"].astype(bool), features=features,
+                 visible=arrays.get("visible"), part=arrays.get("part"))
