@@ -178,7 +178,7 @@ def test_truncated_png_at_every_length_is_refused(tmp_path):
             read_image(tmp_path / "t.png")
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=150, deadline=None, derandomize=True)
 @given(pos=st.integers(8, 10_000), value=st.integers(1, 255))
 def test_any_flipped_byte_in_a_png_is_caught(tmp_path_factory, pos, value):
     """Every PNG chunk carries a CRC: one corrupt byte never decodes to wrong pixels."""
@@ -196,7 +196,7 @@ def test_any_flipped_byte_in_a_png_is_caught(tmp_path_factory, pos, value):
     assert np.array_equal(img, GRAY), pos
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60, deadline=None, derandomize=True)
 @given(data=st.binary(max_size=300), head=st.sampled_from(
     [b"", b"\x89PNG\r\n\x1a\n", b"II*\x00", b"MM\x00*", b"BM"]))
 def test_random_bytes_never_crash(tmp_path_factory, data, head):

@@ -44,6 +44,10 @@ CALIB_FORMAT = "telefringe-calibration-set"
 #: Largest manifest accepted (bytes): a manifest is a few kB.
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024
 _MAX_LISTED = 12  # problems spelled out in one message
+#: Most phase steps accepted in one group.
+MAX_STEPS = 1000
+#: Largest scan read into memory (bytes of decoded images), checked from the headers.
+MAX_SCAN_BYTES = 8 * 1024**3
 
 
 def _r(x, limit: int = 60) -> str:
@@ -52,7 +56,7 @@ def _r(x, limit: int = 60) -> str:
         text = repr(x)
     except Exception:  # noqa: BLE001 - repr of anything JSON gives cannot fail, be safe
         text = f"<{type(x).__name__}>"
-    return text if len(text) <= limit else text[:limit - 5] + " ...]"
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 class _Problems:
@@ -268,12 +272,14 @@ def parse_scan_manifest(doc, *, folder: Path | None = None, where: str = "scan.j
                 probs.add(f"{what}: 'periods' {periods} is more than the projector's "
                           f"{'width' if axis == 'u' else 'height'} / 2 = {length / 2:g} "
                           "(a period must span at least 2 projector pixels)")
-            if not _is_int(steps) or steps < 3:
-                probs.add(f"{what}: 'steps' must be an integer >= 3, got {_r(steps)}")
+            if not _is_int(steps) or not 3 <= steps <= MAX_STEPS:
+                probs.add(f"{what}: 'steps' must be an integer in 3..{MAX_STEPS}, got "
+                          f"{_r(steps)}")
             if not _is_num(offset):
                 probs.add(f"{what}: 'offset' must be a finite number (radians), got "
                           f"{_r(offset)}")
-            need = steps if _is_int(steps) and steps >= 3 else None
+            need = steps if _is_int(steps) and 3 <= steps <= MAX_STEPS else None
+            counted = "'steps'"
         else:
             bits, comp = g.get("bits"), g.get("complementary", False)
             if not _is_int(bits) or not 1 <= bits <= 16:
@@ -282,8 +288,9 @@ def parse_scan_manifest(doc, *, folder: Path | None = None, where: str = "scan.j
                 probs.add(f"{what}: 'complementary' must be true or false, got {_r(comp)}")
             need = ((bits + (1 if comp is True else 0)) if _is_int(bits) and 1 <= bits <= 16
                     else None)
+            counted = "'bits'" + (" + 1 ('complementary')" if comp is True else "")
         if need is not None and len(images) != need:
-            probs.add(f"{what}: needs {need} images, lists {len(images)}")
+            probs.add(f"{what}: needs {need} images ({counted}), lists {len(images)}")
         names = [check_image(name, f"{what}.images[{j}]") for j, name in enumerate(images)]
         if len(probs.items) > n_before:
             continue
@@ -449,6 +456,11 @@ def read_scan(folder, *, progress=None) -> Scan:
         if infos[n].bits != first.bits:
             raise InputError(f"{folder}: bit depths differ: {names[0]} is {first.bits}-bit "
                              f"but {n} is {infos[n].bits}-bit")
+    need = len(names) * first.rows * first.cols * first.dtype.itemsize
+    if need > MAX_SCAN_BYTES:
+        raise InputError(f"{folder}: its {len(names)} images of {first.cols} x {first.rows} "
+                         f"would take {need / 1024**3:.1f} GiB, more than the limit of "
+                         f"{MAX_SCAN_BYTES / 1024**3:.0f} GiB")
     images = {}
     for i, n in enumerate(names):
         images[n] = read_image(folder / n)
