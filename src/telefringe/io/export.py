@@ -1,0 +1,438 @@
+"""Exports of reconstructions and measurements (see docs/formats.md).
+
+- ``points.npz``: the organised point cloud (:func:`write_points`, :func:`read_points`);
+- ``cloud.ply``: binary little-endian PLY of the valid points (CloudCompare, MeshLab,
+  Open3D read it);
+- ``heightmap.tif``: 32-bit float height map (NaN = no data) with its pixel size in the
+  TIFF resolution tags and, exactly, in the sidecar ``heightmap.json``;
+- ``heightmap.png``: a preview with a colour bar;
+- BGA: a CSV with one row per grid position and a PNG map coloured by apex height;
+- any result dataclass as JSON (:func:`to_jsonable`).
+
+Every writer writes atomically (temporary name, then rename) and refuses to replace an
+existing file unless ``force``.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_file, write_json_atomic
+from .errors import InputError
+
+__all__ = [
+    "POINTS_FORMAT",
+    "HEIGHTMAP_FORMAT",
+    "write_points",
+    "read_points",
+    "write_ply",
+    "write_height_tiff",
+    "read_height_tiff",
+    "write_height_png",
+    "write_bga_csv",
+    "write_bga_png",
+    "write_reconstruction",
+    "to_jsonable",
+    "write_json",
+]
+
+POINTS_FORMAT = "telefringe-points"
+HEIGHTMAP_FORMAT = "telefringe-heightmap"
+_VERSION = 1
+
+
+# --------------------------------------------------------------------------------------
+# JSON
+# --------------------------------------------------------------------------------------
+def to_jsonable(obj):
+    """Convert results (dataclasses, numpy arrays and scalars, tuples) to JSON values.
+
+    NaN and infinities become ``null``; arrays become (nested) lists.
+    """
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        if obj.dtype == bool:
+            return obj.tolist()
+        if obj.dtype.kind in "iu":
+            return obj.tolist()
+        a = np.asarray(obj, dtype=np.float64)
+        return to_jsonable(a.tolist())
+    if isinstance(obj, np.bool_ | bool):
+        return bool(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, float | np.floating):
+        f = float(obj)
+        return f if np.isfinite(f) else None
+    return obj
+
+
+def write_json(path, obj, *, force: bool = True) -> Path:
+    """Write ``to_jsonable(obj)`` as indented JSON, atomically."""
+    write_json_atomic(path, to_jsonable(obj), force=force)
+    return Path(path)
+
+
+# --------------------------------------------------------------------------------------
+# points.npz
+# --------------------------------------------------------------------------------------
+def write_points(path, cloud, *, texture=None, force: bool = False) -> Path:
+    """Write an organised point cloud to ``path`` (uncompressed .npz).
+
+    Arrays: ``xyz`` (rows, cols, 3) float64 mm, NaN where invalid; ``mask`` bool;
+    ``sigma_z`` float64 mm; ``sigma_line`` float64 mm (along the camera line);
+    ``direction`` (3,) the camera's viewing direction; ``flags`` uint8 (why a point is
+    invalid, ``telefringe.reconstruct.FLAG_*``); ``residual`` float64 projector px (only
+    with both fringe axes); ``texture`` float32 (rows, cols) fringe-free camera image
+    (optional, for marker detection); ``format`` and ``version``.
+    """
+    arrays = {
+        "format": np.array(POINTS_FORMAT),
+        "version": np.array(_VERSION),
+        "xyz": np.ascontiguousarray(cloud.xyz, dtype=np.float64),
+        "mask": np.asarray(cloud.mask, dtype=bool),
+        "sigma_z": np.asarray(cloud.sigma_z, dtype=np.float64),
+        "sigma_line": np.asarray(cloud.sigma_line, dtype=np.float64),
+        "direction": np.asarray(cloud.direction, dtype=np.float64),
+        "flags": np.asarray(cloud.flags, dtype=np.uint8),
+    }
+    if cloud.residual is not None:
+        arrays["residual"] = np.asarray(cloud.residual, dtype=np.float64)
+    if texture is not None:
+        t = np.asarray(texture, dtype=np.float32)
+        if t.shape != cloud.shape:
+            raise ValueError(f"texture has shape {t.shape}, the cloud {cloud.shape}")
+        arrays["texture"] = t
+    path = Path(path)
+    with atomic_file(path, force=force) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    return path
+
+
+def read_points(path):
+    """Read ``points.npz`` (or a folder holding it).
+
+    Returns
+    -------
+    cloud : telefringe.reconstruct.PointCloud
+    texture : (rows, cols) float32 ndarray or None
+
+    Raises
+    ------
+    InputError
+        Missing file, not a points file, inconsistent arrays.
+    """
+    from ..reconstruct import PointCloud
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "points.npz"
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise InputError(f"{path}: not found (run 'telefringe reconstruct' first)") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a points file ({exc})") from None
+    if str(arrays.get("format", "")) != POINTS_FORMAT:
+        raise InputError(f"{path}: not a telefringe points file (no format '{POINTS_FORMAT}')")
+    if int(arrays.get("version", -1)) != _VERSION:
+        raise InputError(f"{path}: points file version {arrays.get('version')} is not "
+                         f"supported (this telefringe reads version {_VERSION})")
+    for k in ("xyz", "mask", "sigma_line", "direction", "flags"):
+        if k not in arrays:
+            raise InputError(f"{path}: array '{k}' is missing")
+    xyz = arrays["xyz"]
+    if xyz.ndim != 3 or xyz.shape[2] != 3 or xyz.dtype.kind != "f":
+        raise InputError(f"{path}: 'xyz' must be a float (rows, cols, 3) array")
+    shape = xyz.shape[:2]
+    for k in ("mask", "sigma_line", "flags", "residual", "texture"):
+        if k in arrays and arrays[k].shape != shape:
+            raise InputError(f"{path}: '{k}' has shape {arrays[k].shape}, expected {shape}")
+    d = np.asarray(arrays["direction"], dtype=np.float64)
+    if d.shape != (3,) or not np.all(np.isfinite(d)) or abs(np.linalg.norm(d) - 1) > 1e-6:
+        raise InputError(f"{path}: 'direction' must be a unit 3-vector")
+    mask = arrays["mask"].astype(bool)
+    if np.any(mask & ~np.all(np.isfinite(xyz), axis=2)):
+        raise InputError(f"{path}: 'mask' marks points whose xyz is not finite")
+    xyz = np.where(mask[..., None], xyz, np.nan).astype(np.float64)
+    cloud = PointCloud(xyz, mask, np.where(mask, arrays["sigma_line"], np.nan),
+                       arrays.get("residual"), arrays["flags"].astype(np.uint8), d)
+    return cloud, arrays.get("texture")
+
+
+# --------------------------------------------------------------------------------------
+# PLY
+# --------------------------------------------------------------------------------------
+def write_ply(path, cloud, *, texture=None, force: bool = False) -> Path:
+    """Binary little-endian PLY of the valid points (row-major pixel order).
+
+    Vertex properties: ``x, y, z`` (float32, mm); ``red, green, blue`` (uint8, the
+    texture's gray level scaled to its 0.5 / 99.5 percentiles) when ``texture`` is given;
+    ``sigma_z`` (float32, mm) when the cloud has uncertainties (CloudCompare shows it as
+    a scalar field; other readers skip it).
+    """
+    from plyfile import PlyData, PlyElement
+
+    m = np.asarray(cloud.mask)
+    pts = np.asarray(cloud.xyz)[m]
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    gray = None
+    if texture is not None:
+        t = np.asarray(texture, dtype=np.float64)
+        vals = t[m]
+        if vals.size:
+            lo, hi = np.percentile(vals, [0.5, 99.5])
+            gray = np.clip((vals - lo) / max(hi - lo, 1e-12) * 255.0, 0, 255).astype(np.uint8)
+        else:
+            gray = np.zeros(0, np.uint8)
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    sz = np.asarray(cloud.sigma_z)[m]
+    has_sigma = bool(sz.size) and bool(np.all(np.isfinite(sz)))
+    if has_sigma:
+        fields.append(("sigma_z", "<f4"))
+    v = np.empty(pts.shape[0], dtype=fields)
+    v["x"], v["y"], v["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    if gray is not None:
+        v["red"] = v["green"] = v["blue"] = gray
+    if has_sigma:
+        v["sigma_z"] = sz
+    el = PlyElement.describe(v, "vertex")
+    ply = PlyData([el], text=False, byte_order="<",
+                  comments=["telefringe point cloud, world frame, mm"])
+    path = Path(path)
+    with atomic_file(path, force=force) as tmp:
+        ply.write(str(tmp))
+    return path
+
+
+# --------------------------------------------------------------------------------------
+# Height maps
+# --------------------------------------------------------------------------------------
+def _heightmap_meta(hm) -> dict:
+    h, w = hm.z.shape
+    return {
+        "format": HEIGHTMAP_FORMAT, "version": _VERSION, "units": "mm",
+        "width": int(w), "height": int(h),
+        "pixel_mm": float(hm.pixel_mm), "x0_mm": float(hm.x0), "y0_mm": float(hm.y0),
+        "orientation": "z[row, col] is at x = x0_mm + col * pixel_mm, "
+                       "y = y0_mm - row * pixel_mm (row 0 at the largest y, like the "
+                       "camera image); world frame of the rig, z toward the camera",
+        "nodata": "NaN",
+    }
+
+
+def write_height_tiff(path, hm, *, force: bool = False) -> tuple[Path, Path]:
+    """Write a height map as a 32-bit float TIFF plus a sidecar JSON.
+
+    The TIFF holds ``hm.z`` (mm, NaN where no data); its X/YResolution tags give the
+    pixel size (pixels per centimetre, unit CENTIMETER) and its ImageDescription the
+    metadata JSON; the sidecar ``<name>.json`` holds the same metadata exactly
+    (``pixel_mm``, ``x0_mm``, ``y0_mm``, orientation). When ``hm.sigma_z`` is present it is
+    written as a second TIFF ``<name>_sigma.tif``.
+
+    Returns the paths of the TIFF and of the sidecar.
+    """
+    import tifffile
+
+    path = Path(path)
+    side = path.with_suffix(".json")
+    meta = _heightmap_meta(hm)
+    res = 10.0 / float(hm.pixel_mm)  # pixels per cm
+    targets = [(path, hm.z)]
+    if hm.sigma_z is not None:
+        meta["sigma_file"] = path.with_name(path.stem + "_sigma.tif").name
+        targets.append((path.with_name(path.stem + "_sigma.tif"), hm.sigma_z))
+    for p, arr in targets:
+        with atomic_file(p, force=force) as tmp:
+            tifffile.imwrite(tmp, np.asarray(arr, dtype=np.float32),
+                             resolution=(res, res), resolutionunit="CENTIMETER",
+                             description=json.dumps(meta), metadata=None)
+    write_json_atomic(side, meta, force=force)
+    return path, side
+
+
+def read_height_tiff(path):
+    """Read a height map written by :func:`write_height_tiff` (HeightMap)."""
+    import tifffile
+
+    from ..reconstruct import HeightMap
+
+    path = Path(path)
+    side = path.with_suffix(".json")
+    try:
+        z = tifffile.imread(path)
+        meta = json.loads(side.read_text())
+    except FileNotFoundError as exc:
+        raise InputError(f"{exc.filename}: not found") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a height map ({exc})") from None
+    if meta.get("format") != HEIGHTMAP_FORMAT or meta.get("version") != _VERSION:
+        raise InputError(f"{side}: not a telefringe height map sidecar (version {_VERSION})")
+    return HeightMap(np.asarray(z, dtype=np.float32), float(meta["x0_mm"]),
+                     float(meta["y0_mm"]), float(meta["pixel_mm"]))
+
+
+def _figure(figsize):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, dpi=100)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def write_height_png(path, hm, *, title: str | None = None, force: bool = False) -> Path:
+    """A PNG preview of a height map with a colour bar (mm), axes in world mm.
+
+    The colour range spans the 0.5 / 99.5 percentiles of the heights (outliers do not
+    wash the map out).
+    """
+    z = np.asarray(hm.z, dtype=np.float64)
+    fin = z[np.isfinite(z)]
+    h, w = z.shape
+    aspect = h / max(w, 1)
+    fig = _figure((7.5, max(2.5, min(7.5 * aspect, 9.0)) + 0.6))
+    ax = fig.add_subplot(1, 1, 1)
+    if fin.size:
+        lo, hi = np.percentile(fin, [0.5, 99.5])
+        if hi <= lo:
+            lo, hi = lo - 1e-3, hi + 1e-3
+    else:
+        lo, hi = 0.0, 1.0
+    im = ax.imshow(np.ma.masked_invalid(z), extent=hm.extent, origin="upper", cmap="viridis",
+                   vmin=lo, vmax=hi, interpolation="nearest")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_facecolor("0.85")
+    if title:
+        ax.set_title(title)
+    cb = fig.colorbar(im, ax=ax, shrink=0.9)
+    cb.set_label("height z (mm)")
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_file(path, force=force) as tmp:
+        fig.savefig(tmp, format="png")
+    return path
+
+
+# --------------------------------------------------------------------------------------
+# BGA
+# --------------------------------------------------------------------------------------
+_BGA_COLUMNS = ("row", "col", "status", "x_mm", "y_mm", "z_mm", "apex_x_mm", "apex_y_mm",
+                "apex_z_mm", "height_mm", "sigma_height_mm", "diameter_mm", "pos_x_mm",
+                "pos_y_mm", "dx_mm", "dy_mm", "coplanarity_mm", "seating_contact", "fit_rms_mm",
+                "n_points")
+
+
+def write_bga_csv(path, m, *, force: bool = False) -> Path:
+    """One row per grid position of a :class:`telefringe.metrology.BGAMeasurement`.
+
+    ``status`` is ``ok``, ``missing`` (populated position with no ball) or ``unexpected``
+    (a ball where the nominal grid has none); positions that are empty as they should be
+    are left out. Columns: grid ``row``, ``col``; sphere centre ``x/y/z_mm`` and apex
+    ``apex_*_mm`` (world); ``height_mm`` (apex above the substrate plane) and its
+    ``sigma_height_mm``; ``diameter_mm``; ``pos_*_mm`` (centre in the grid frame) and
+    ``dx/dy_mm`` (its offset from the nominal position); ``coplanarity_mm`` (distance of the
+    apex from the JEDEC seating plane); ``seating_contact`` (1 for the balls the package
+    rests on); ``fit_rms_mm``; ``n_points``.
+    """
+    pitch = m.nominal.pitch_mm
+    contacts = set(int(k) for k in m.coplanarity.contacts)
+    by_pos = {(int(i), int(j)): k for k, (i, j) in enumerate(m.index)}
+    unexpected = set(m.unexpected)
+    populated = m.nominal.populated()
+    rows = []
+    for i in range(m.nominal.rows):
+        for j in range(m.nominal.cols):
+            k = by_pos.get((i, j))
+            if k is None:
+                if populated[i, j]:
+                    rows.append([i, j, "missing"] + [""] * (len(_BGA_COLUMNS) - 3))
+                continue
+            status = "unexpected" if (i, j) in unexpected else "ok"
+            c, a = m.centre[k], m.apex[k]
+            px, py = m.position[k]
+            rows.append([i, j, status, *(f"{v:.6f}" for v in c), *(f"{v:.6f}" for v in a),
+                         f"{m.height[k]:.6f}", f"{m.sigma_height[k]:.6f}",
+                         f"{m.diameter[k]:.6f}", f"{px:.6f}", f"{py:.6f}",
+                         f"{px - j * pitch:.6f}", f"{py - i * pitch:.6f}",
+                         f"{m.coplanarity.distances[k]:.6f}", int(k in contacts),
+                         f"{m.rms[k]:.6f}", int(m.n_points[k])])
+    path = Path(path)
+    with atomic_file(path, force=force) as tmp, open(tmp, "w", newline="") as f:
+        wr = csv.writer(f)
+        wr.writerow(_BGA_COLUMNS)
+        wr.writerows(rows)
+    return path
+
+
+def write_bga_png(path, m, *, title: str | None = None, force: bool = False) -> Path:
+    """A map of the balls on the grid, coloured by apex height (mm); missing balls are
+    red crosses, the seating-plane contacts are circled."""
+    rows, cols = m.nominal.rows, m.nominal.cols
+    fig = _figure((7.5, max(3.0, 7.0 * rows / max(cols, 1)) + 0.8))
+    ax = fig.add_subplot(1, 1, 1)
+    pitch = m.nominal.pitch_mm
+    x = m.index[:, 1] * pitch
+    y = m.index[:, 0] * pitch
+    size = (72.0 * 6.0 / max(rows, cols)) ** 2
+    sc = ax.scatter(x, y, c=m.height, cmap="viridis", s=size, marker="o", edgecolors="none")
+    if len(m.coplanarity.contacts):
+        k = m.coplanarity.contacts
+        ax.scatter(x[k], y[k], s=size * 1.6, facecolors="none", edgecolors="k",
+                   linewidths=1.2, label="seating-plane contacts")
+    if m.missing:
+        mi = np.array(m.missing)
+        ax.scatter(mi[:, 1] * pitch, mi[:, 0] * pitch, marker="x", c="red", s=size * 0.6,
+                   label=f"missing ({len(m.missing)})")
+    ax.set_aspect("equal")
+    ax.set_xlim(-pitch, cols * pitch)
+    ax.set_ylim(-pitch, rows * pitch)
+    ax.set_xlabel("column x' (mm)")
+    ax.set_ylabel("row y' (mm)")
+    ax.set_title(title or f"BGA: {m.n_balls} balls, coplanarity "
+                 f"{m.coplanarity.value * 1000:.1f} um")
+    cb = fig.colorbar(sc, ax=ax, shrink=0.9)
+    cb.set_label("apex height above substrate (mm)")
+    if len(m.coplanarity.contacts) or m.missing:
+        ax.legend(loc="upper right", fontsize="small", framealpha=0.8)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_file(path, force=force) as tmp:
+        fig.savefig(tmp, format="png")
+    return path
+
+
+# --------------------------------------------------------------------------------------
+# Everything a reconstruction leaves
+# --------------------------------------------------------------------------------------
+def write_reconstruction(folder, cloud, hm=None, *, texture=None, title: str | None = None,
+                         ply: bool = True, force: bool = False) -> dict:
+    """Write ``points.npz``, ``cloud.ply``, ``heightmap.tif`` (+ ``.json``, ``_sigma.tif``)
+    and ``heightmap.png`` into an existing ``folder``.
+
+    Returns a dict name -> Path of what was written.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: not a folder")
+    out = {"points": write_points(folder / "points.npz", cloud, texture=texture, force=force)}
+    if ply:
+        out["ply"] = write_ply(folder / "cloud.ply", cloud, texture=texture, force=force)
+    if hm is not None:
+        out["heightmap"], out["heightmap_json"] = write_height_tiff(
+            folder / "heightmap.tif", hm, force=force)
+        out["heightmap_png"] = write_height_png(folder / "heightmap.png", hm, title=title,
+                                                force=force)
+    return out

@@ -1,0 +1,193 @@
+"""Exports: points.npz round trip, PLY, float TIFF + sidecar, PNG previews, BGA CSV/map."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from telefringe.io.errors import InputError
+from telefringe.io.export import (
+    read_height_tiff,
+    read_points,
+    to_jsonable,
+    write_bga_csv,
+    write_bga_png,
+    write_height_png,
+    write_height_tiff,
+    write_json,
+    write_ply,
+    write_points,
+    write_reconstruction,
+)
+from telefringe.metrology import BGANominal, fit_plane, measure_bga
+from telefringe.reconstruct import PointCloud, height_map
+
+PNG_SIG = b"\x89PNG\r\n\x1a\n"
+
+
+def small_cloud(seed=0, shape=(40, 50)):
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    x, y = 0.05 * u, -0.05 * v
+    z = 0.3 + 0.01 * x + 0.002 * rng.standard_normal(shape)
+    xyz = np.stack([x, y, z], axis=-1)
+    xyz[5:9, 7:12] = np.nan
+    return PointCloud.from_xyz(xyz, sigma_z=np.full(shape, 0.002))
+
+
+def test_points_round_trip(tmp_path):
+    cloud = small_cloud()
+    tex = np.random.default_rng(1).uniform(0, 255, cloud.shape).astype(np.float32)
+    p = write_points(tmp_path / "points.npz", cloud, texture=tex)
+    c2, t2 = read_points(tmp_path)  # a folder works too
+    assert np.array_equal(c2.mask, cloud.mask)
+    assert np.array_equal(c2.xyz, cloud.xyz, equal_nan=True)
+    assert np.array_equal(c2.sigma_z, cloud.sigma_z, equal_nan=True)
+    assert np.array_equal(c2.flags, cloud.flags)
+    assert np.array_equal(t2, tex)
+    assert c2.residual is None
+    with np.load(p) as z:
+        assert {"xyz", "mask", "sigma_z"} <= set(z.files)
+        assert z["xyz"].shape == cloud.shape + (3,)
+    with pytest.raises(InputError, match="already exists"):
+        write_points(p, cloud)
+    write_points(p, cloud, force=True)
+    with pytest.raises(ValueError, match="texture"):
+        write_points(tmp_path / "x.npz", cloud, texture=tex[:-1])
+
+
+def test_read_points_refuses_bad_files(tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        read_points(tmp_path / "nope.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="not a points file"):
+        read_points(tmp_path / "junk.npz")
+    np.savez(tmp_path / "other.npz", xyz=np.zeros((2, 2, 3)))
+    with pytest.raises(InputError, match="not a telefringe points file"):
+        read_points(tmp_path / "other.npz")
+    cloud = small_cloud()
+    write_points(tmp_path / "p.npz", cloud)
+    with np.load(tmp_path / "p.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    bad = dict(arrays, mask=np.ones(cloud.shape, bool))  # marks NaN points valid
+    np.savez(tmp_path / "bad.npz", **bad)
+    with pytest.raises(InputError, match="not finite"):
+        read_points(tmp_path / "bad.npz")
+    bad = dict(arrays, version=np.array(7))
+    np.savez(tmp_path / "bad2.npz", **bad)
+    with pytest.raises(InputError, match="version"):
+        read_points(tmp_path / "bad2.npz")
+    bad = dict(arrays, sigma_line=np.zeros((3, 3)))
+    np.savez(tmp_path / "bad3.npz", **bad)
+    with pytest.raises(InputError, match="shape"):
+        read_points(tmp_path / "bad3.npz")
+
+
+def test_ply_binary_readable(tmp_path):
+    from plyfile import PlyData
+
+    cloud = small_cloud()
+    tex = np.linspace(0, 255, cloud.mask.size).reshape(cloud.shape)
+    p = write_ply(tmp_path / "cloud.ply", cloud, texture=tex)
+    head = p.read_bytes()[:300]
+    assert head.startswith(b"ply\nformat binary_little_endian 1.0\n")
+    ply = PlyData.read(str(p))
+    v = ply["vertex"]
+    assert v.count == cloud.count
+    names = [pr.name for pr in v.properties]
+    assert names[:3] == ["x", "y", "z"] and "red" in names and "sigma_z" in names
+    pts = cloud.points()
+    assert np.allclose(v["x"], pts[:, 0], atol=1e-6)
+    assert np.allclose(v["z"], pts[:, 2], atol=1e-6)
+    # without texture or uncertainty: xyz only
+    bare = PointCloud.from_xyz(cloud.xyz)
+    ply = PlyData.read(str(write_ply(tmp_path / "bare.ply", bare)))
+    assert [pr.name for pr in ply["vertex"].properties] == ["x", "y", "z"]
+
+
+def test_height_tiff_and_sidecar(tmp_path):
+    import tifffile
+
+    cloud = small_cloud()
+    hm = height_map(cloud, pixel_mm=0.05)
+    tif, side = write_height_tiff(tmp_path / "heightmap.tif", hm)
+    with tifffile.TiffFile(tif) as t:
+        page = t.pages[0]
+        z = page.asarray()
+        assert z.dtype == np.float32 and z.shape == hm.z.shape
+        xres = page.tags["XResolution"].value
+        assert page.tags["ResolutionUnit"].value == 3  # centimetre
+        assert xres[0] / xres[1] == pytest.approx(10.0 / 0.05, rel=1e-6)
+        meta = json.loads(page.description)
+        assert meta["pixel_mm"] == 0.05
+    assert np.array_equal(z, hm.z, equal_nan=True)
+    assert np.isnan(z).any()
+    meta = json.loads(side.read_text())
+    assert meta["x0_mm"] == hm.x0 and meta["y0_mm"] == hm.y0 and meta["units"] == "mm"
+    assert (tmp_path / "heightmap_sigma.tif").exists()
+    hm2 = read_height_tiff(tif)
+    assert hm2.pixel_mm == hm.pixel_mm and np.array_equal(hm2.z, hm.z, equal_nan=True)
+    with pytest.raises(InputError, match="already exists"):
+        write_height_tiff(tif, hm)
+
+
+def test_previews_are_png(tmp_path):
+    cloud = small_cloud()
+    hm = height_map(cloud)
+    p = write_height_png(tmp_path / "h.png", hm, title="test")
+    assert p.read_bytes()[:8] == PNG_SIG
+    # an all-NaN map still renders
+    from telefringe.reconstruct import HeightMap
+
+    p = write_height_png(tmp_path / "nan.png", HeightMap(np.full((4, 5), np.nan, np.float32),
+                                                         0.0, 0.0, 0.1))
+    assert p.read_bytes()[:8] == PNG_SIG
+
+
+def test_write_reconstruction(tmp_path):
+    cloud = small_cloud()
+    out = write_reconstruction(tmp_path, cloud, height_map(cloud), title="x")
+    for name in ("points.npz", "cloud.ply", "heightmap.tif", "heightmap.json",
+                 "heightmap.png", "heightmap_sigma.tif"):
+        assert (tmp_path / name).exists(), name
+    assert set(out) == {"points", "ply", "heightmap", "heightmap_json", "heightmap_png"}
+    with pytest.raises(InputError):
+        write_reconstruction(tmp_path / "missing", cloud)
+
+
+def test_bga_csv_and_map(tmp_path):
+    from test_metrology import bga_cloud
+
+    cloud, present, offs, apex = bga_cloud(rows=4, cols=5, missing=((1, 2),))
+    m = measure_bga(cloud, BGANominal(rows=4, cols=5, pitch_mm=0.8, ball_diameter_mm=0.45))
+    p = write_bga_csv(tmp_path / "bga.csv", m)
+    with open(p, newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 20
+    miss = [r for r in rows if r["status"] == "missing"]
+    assert [(int(r["row"]), int(r["col"])) for r in miss] == [(1, 2)]
+    ok = [r for r in rows if r["status"] == "ok"]
+    h = np.array([float(r["height_mm"]) for r in ok])
+    assert np.allclose(h, m.height, atol=1e-6)
+    assert sum(int(r["seating_contact"]) for r in ok) == len(m.coplanarity.contacts)
+    assert max(float(r["coplanarity_mm"]) for r in ok) == pytest.approx(m.coplanarity.value,
+                                                                         abs=1e-6)
+    png = write_bga_png(tmp_path / "bga.png", m)
+    assert png.read_bytes()[:8] == PNG_SIG
+
+
+def test_to_jsonable(tmp_path):
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(50, 3))
+    p[:, 2] *= 0.01
+    fit = fit_plane(p)
+    d = to_jsonable(fit)
+    json.dumps(d, allow_nan=False)
+    assert d["n_points"] == 50 and len(d["normal"]) == 3 and isinstance(d["inliers"][0], bool)
+    assert to_jsonable({"a": np.nan, "b": (1, np.int64(2)), "c": np.array([1.0, np.inf])}) == {
+        "a": None, "b": [1, 2], "c": [1.0, None]}
+    out = write_json(tmp_path / "r.json", {"fit": fit})
+    assert json.loads(out.read_text())["fit"]["n_points"] == 50
