@@ -155,3 +155,74 @@ def test_every_command_has_help_with_an_example(path, capsys):
     out = capsys.readouterr()
     assert code == 0, out.err
     assert "Example" in out.out, f"`telefringe {' '.join(path)} --help` shows no example"
+
+
+# --------------------------------------------------------------------------- real commands
+def _has(*path):
+    return list(path) in _CMDS
+
+
+needs_scan_commands = pytest.mark.skipif(
+    not (_has("patterns") and _has("decode")),
+    reason="needs the `telefringe patterns` and `telefringe decode` commands")
+
+
+def _snapshot(folder):
+    return {p.relative_to(folder): p.read_bytes() if p.is_file() else None
+            for p in sorted(folder.rglob("*"))}
+
+
+@pytest.fixture(scope="module")
+def pattern_folder(tmp_path_factory):
+    """A small scan folder written by `telefringe patterns` (its images stand in for
+    captures)."""
+    cwd = tmp_path_factory.mktemp("cli")
+    out = run("patterns", "pats", "--width", "64", "--height", "48", "--periods", "1,8",
+              cwd=cwd)
+    assert out.returncode == 0, out.stderr
+    return cwd / "pats"
+
+
+@needs_scan_commands
+def test_existing_output_is_refused_without_force(pattern_folder):
+    cwd = pattern_folder.parent
+    before = _snapshot(cwd)
+    out = run("patterns", "pats", "--width", "32", "--height", "16", "--periods", "1",
+              cwd=cwd)
+    assert out.returncode == 2 and "already exists" in out.stderr and "--force" in out.stderr
+    _no_traceback(out)
+    assert _snapshot(cwd) == before
+
+
+@needs_scan_commands
+@pytest.mark.parametrize("breakage, tokens", [
+    ("manifest", ["scan.json", "'patterns[0]", "'steps'"]),
+    ("image", ["u_008_4s_01.png", "truncated"]),
+    ("missing", ["nope", "not a folder"]),
+])
+def test_a_broken_scan_through_decode(tmp_path, pattern_folder, breakage, tokens):
+    import shutil as sh
+
+    scan = tmp_path / "scan"
+    sh.copytree(pattern_folder, scan)
+    if breakage == "manifest":
+        doc = (scan / "scan.json").read_text()
+        (scan / "scan.json").write_text(doc.replace('"steps": 4', '"steps": 2.5', 1))
+        tokens = [str(scan / "scan.json"), *tokens[1:]]
+    elif breakage == "image":
+        img = scan / "u_008_4s_01.png"
+        img.write_bytes(img.read_bytes()[:100])
+    else:
+        scan = tmp_path / "nope"
+    before = _snapshot(tmp_path)
+    out = run("decode", str(scan), "-o", "coords.npz", cwd=tmp_path)
+    assert out.returncode == 2, out.stderr
+    _no_traceback(out)
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), out.stderr
+    for token in tokens:
+        assert token.strip("'") in lines[0], (token, lines[0])
+    assert _snapshot(tmp_path) == before  # nothing written, no temporary left
+    debug = run("--debug", "decode", str(scan), "-o", "coords.npz", cwd=tmp_path)
+    assert debug.returncode != 0 and "Traceback" in debug.stderr
+    assert "InputError" in debug.stderr

@@ -53,4 +53,9 @@ def progress_bar(description: str, total: int | None):
                   MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
                   console=err_console, transient=False) as prog:
         task = prog.add_task(description, total=total)
-        yield lambda n=1: prog.advance(task, n)
+        try:
+            yield lambda n=1: prog.advance(task, n)
+        except BaseException:
+            # a failed step leaves no half-drawn bar: the error stays the one line shown
+            prog.live.transient = True
+            raise
