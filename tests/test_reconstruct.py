@@ -119,6 +119,31 @@ def test_exact_recovery_strong_distortion():
     assert np.max(np.abs(cloud2.xyz - X)) < 1e-9
 
 
+def test_v_fringes_only():
+    rig = make_rig()
+    # the projector turned by 90 deg about its axis: v now carries the depth
+    quarter = rotation_from_rotvec([0.0, 0.0, np.pi / 2])
+    prj = TelecentricDevice(rig.projector.intrinsics, quarter @ rig.projector.R_dev_world,
+                            rig.projector.t_dev[::-1].copy())
+    rig_v = Rig(rig.camera, prj)
+    X, up, vp = surface_points(rig_v)
+    sig = np.full(SHAPE, 0.02)
+    cloud = triangulate(rig_v, Coords(None, vp, None, None, sig))
+    assert cloud.count == up.size
+    assert np.max(np.abs(cloud.xyz - X)) < 1e-9
+    assert np.all(np.isfinite(cloud.sigma_z)) and cloud.residual is None
+    # u_p alone still triangulates here (the projector is turned by 3 deg about its
+    # axis) but with ~20 times less depth sensitivity
+    cloud_u = triangulate(rig_v, Coords(up, None, None, sig))
+    assert np.nanmedian(cloud_u.sigma_z / cloud.sigma_z) > 10
+    flat = Rig(rig.camera, TelecentricDevice(rig.projector.intrinsics,
+                                             quarter @ rig.camera.R_dev_world, np.zeros(2)))
+    with pytest.raises(TriangulationError, match="v_p barely changes"):
+        triangulate(flat, Coords(None, vp))
+    with pytest.raises(TriangulationError, match="neither"):
+        triangulate(rig, Coords(None))
+
+
 def test_float32_and_integer_inputs():
     rig = make_rig()
     X, up, vp = surface_points(rig)

@@ -267,16 +267,25 @@ class Triangulator:
                     max_sigma_z: float | None = None, use_v_p: bool = True,
                     check_bounds: bool = True) -> PointCloud:
         """Triangulate decoded projector coordinates; see :func:`triangulate`."""
-        up = np.asarray(coords.u_p)
-        if up.shape != self.shape:
-            raise TriangulationError(
-                f"u_p has shape {up.shape} but the triangulator was built for {self.shape}")
-        mask_in = getattr(coords, "mask", None)
-        mask_in = (np.ones(self.shape, dtype=bool) if mask_in is None
-                   else np.asarray(mask_in, dtype=bool))
+        up = getattr(coords, "u_p", None)
         vp = getattr(coords, "v_p", None)
         su = getattr(coords, "sigma_u_p", None)
         sv = getattr(coords, "sigma_v_p", None)
+        # v fringes only: the same solve with the projector's axes swapped (the distortion
+        # model is symmetric under x <-> y with s1 <-> s2)
+        swap = up is None
+        if swap:
+            if vp is None:
+                raise TriangulationError("coords has neither u_p nor v_p")
+            up, vp, su, sv = vp, None, sv, None
+        up = np.asarray(up)
+        if up.shape != self.shape:
+            raise TriangulationError(
+                f"the projector coordinates have shape {up.shape} but the triangulator was "
+                f"built for {self.shape}")
+        mask_in = getattr(coords, "mask", None)
+        mask_in = (np.ones(self.shape, dtype=bool) if mask_in is None
+                   else np.asarray(mask_in, dtype=bool))
         has_v = vp is not None
         for name, arr in (("mask", mask_in), ("v_p", vp), ("sigma_u_p", su),
                           ("sigma_v_p", sv)):
@@ -284,7 +293,8 @@ class Triangulator:
                 raise TriangulationError(
                     f"{name} has shape {np.shape(arr)}, expected {self.shape} like u_p")
         combine = has_v and use_v_p
-        Bu, Bv = float(self.coef[0, 2]), float(self.coef[1, 2])
+        coef = self.coef[::-1] if swap else self.coef
+        Bu, Bv = float(coef[0, 2]), float(coef[1, 2])
         m_p = self.rig.projector.intrinsics.m
         # sensitivity of the projector's undistorted sensor coordinate to depth, relative
         # to a device looking straight along it (1): below 1 % there is no triangulation
@@ -294,13 +304,19 @@ class Triangulator:
                     "the projector's image does not move with depth along the camera's "
                     "lines (camera and projector axes are parallel): cannot triangulate")
         elif abs(Bu) < 1e-2 * m_p:
+            a1, a2 = ("v", "u") if swap else ("u", "v")
             raise TriangulationError(
-                "u_p barely changes with depth for this rig (the projector's u axis is "
-                "nearly perpendicular to the camera's axis); capture v fringes and "
-                "triangulate with v_p")
+                f"{a1}_p barely changes with depth for this rig (the projector's {a1} axis "
+                f"is nearly perpendicular to the camera's axis); capture {a2} fringes and "
+                f"triangulate with {a2}_p")
         ki = self.rig.projector.intrinsics
         W = float(ki.width) if check_bounds and ki.width else np.inf
         H = float(ki.height) if check_bounds and ki.height else np.inf
+        t_p = m_p * np.asarray(self.rig.projector.t_dev, dtype=np.float64)
+        u0, v0, du, dv, s1, s2 = ki.u0, ki.v0, ki.du, ki.dv, ki.s1, ki.s2
+        if swap:
+            u0, v0, du, dv, s1, s2, W, H = v0, u0, dv, du, s2, s1, H, W
+            t_p = t_p[::-1]
         n = int(np.prod(self.shape))
 
         def flat(x, fill=np.nan):
@@ -320,10 +336,8 @@ class Triangulator:
         res = np.empty(n)
         flags = np.empty(n, dtype=np.uint8)
         Rc = np.ascontiguousarray(self.rig.camera.R_dev_world)
-        kp = np.array((ki.u0, ki.v0, ki.du, ki.dv, ki.k1, ki.s1, ki.s2, W, H,
-                       self.coef[0, 0], self.coef[0, 1], Bu, self.coef[1, 0], self.coef[1, 1],
-                       Bv, m_p * self.rig.projector.t_dev[0],
-                       m_p * self.rig.projector.t_dev[1]), dtype=np.float64)
+        kp = np.array((u0, v0, du, dv, ki.k1, s1, s2, W, H, coef[0, 0], coef[0, 1], Bu,
+                       coef[1, 0], coef[1, 1], Bv, t_p[0], t_p[1]), dtype=np.float64)
         args = (self.a.reshape(n), self.b.reshape(n), up_f, vp_f, flat(su), flat(sv),
                 flat(mask_in.astype(bool, copy=False)), has_v, combine, kp, Rc,
                 np.inf if max_residual is None else float(max_residual),
@@ -531,14 +545,18 @@ def triangulate(rig: Rig, coords, *, max_residual: float | None = 1.0,
     coords : object with attributes ``u_p``, ``v_p``, ``mask``, ``sigma_u_p``, ``sigma_v_p``
         E.g. :class:`telefringe.decode.ProjectorCoordinates`. ``u_p`` (rows, cols)
         projector columns (px) per camera pixel, NaN where invalid; ``v_p`` projector
-        rows (px) or None without horizontal fringes; ``mask`` (rows, cols) bool or None;
+        rows (px) or None without horizontal fringes (with v fringes only, ``u_p`` may be
+        None: ``v_p`` then plays its part); ``mask`` (rows, cols) bool or None;
         ``sigma_u_p`` / ``sigma_v_p`` standard uncertainties (projector px) or None
         (then the uncertainties of the result are NaN and both axes weigh the same).
     max_residual : float or None, keyword-only
         With ``v_p``: points whose observed projector pixel is farther than this (projector
         px) from the one predicted by the solution are invalid (``FLAG_INCONSISTENT``).
         The default 1 px lets decoding noise and calibration error through and stops
-        fringe-order errors (one period is many projector pixels). None: no check.
+        fringe-order errors (one period is many projector pixels) across the epipolar
+        line, i.e. on the axis that carries little depth (usually v). An error along the
+        epipolar line only moves the point in depth and cannot be seen here. None: no
+        check.
     max_sigma_z : float or None, keyword-only
         Points with a larger standard uncertainty of Z (mm) are invalid.
     use_v_p : bool, keyword-only
@@ -557,7 +575,12 @@ def triangulate(rig: Rig, coords, *, max_residual: float | None = 1.0,
     The rig's per-pixel precomputation (:class:`Triangulator`) is cached for the last
     few (rig, shape) pairs, so repeated calls with the same rig are fast.
     """
-    shape = tuple(int(n) for n in np.shape(coords.u_p))
+    up = getattr(coords, "u_p", None)
+    if up is None:
+        up = getattr(coords, "v_p", None)
+        if up is None:
+            raise TriangulationError("coords has neither u_p nor v_p")
+    shape = tuple(int(n) for n in np.shape(up))
     if len(shape) != 2:
         raise TriangulationError(f"u_p must be a (rows, cols) array, got shape {shape}")
     tri = _cached_triangulator(rig, shape)
