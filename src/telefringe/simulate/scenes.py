@@ -350,7 +350,7 @@ class BGA:
     height_offsets: np.ndarray | None = None
     missing: tuple[tuple[int, int], ...] = ()
     ball_albedo: float = 0.25
-    ball_specular: float = 4.0
+    ball_specular: float = 6.0
     substrate_albedo: float = 0.3
     board_albedo: float = 0.5
     chip_margin: float = 1.0
