@@ -314,8 +314,10 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
         shadow = np.ones(shape, dtype=bool)
         for lv in levels:
             shadow &= ~(lv.wrapped.modulation >= min_mod)
-    good = ~saturated & ~low_mod & ~shadow
-    sigmas = [phase_sigma(lv.wrapped.modulation, lv.wrapped.background, steps=lv.steps,
+    # (shadow is a diagnostic: an unlit pixel has no modulation in any group anyway, and
+    # white/black frames of one exposure say little about the other exposures of HDR sets)
+    good = ~saturated & ~low_mod
+    sigmas = [phase_sigma(lv.wrapped.modulation, lv.wrapped.quadrature, steps=lv.steps,
                           noise=noise) for lv in levels]
     phases = [lv.wrapped.phase for lv in levels]
 

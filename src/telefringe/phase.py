@@ -55,11 +55,17 @@ class WrappedPhase:
     phase : (rows, cols) ndarray of float64, rad, wrapped to (-pi, pi].
     modulation : (rows, cols) ndarray of float64, B in DN.
     background : (rows, cols) ndarray of float64, A in DN.
+    quadrature : (rows, cols) ndarray of float64 or None, DN: the samples' mean weighted by
+        their phase sensitivity, ``(2/N) sum_k I_k sin^2(phi + offset + d_k)``. The phase
+        noise is ``sqrt(2/N) sigma_I / B`` with sigma_I evaluated at this level (it equals
+        A for a pure sinusoid; a peaky, gamma-distorted fringe is darker where the phase
+        is read, hence less shot noise).
     """
 
     phase: np.ndarray
     modulation: np.ndarray
     background: np.ndarray
+    quadrature: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -104,8 +110,10 @@ def wrap(phase) -> np.ndarray:
     return np.where(w <= -np.pi, w + 2.0 * np.pi, w)
 
 
-def phase_shift_coefficients(steps: int, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Cosine and sine weights ``(cos(d_k + offset), sin(d_k + offset))``, each (steps,).
+def phase_shift_coefficients(steps: int, offset: float = 0.0, *,
+                             harmonic: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Cosine and sine weights ``(cos(h d_k + offset), sin(h d_k + offset))``, each (steps,),
+    h = ``harmonic``.
 
     Values within 1e-12 of 0, +-0.5 or +-1 are snapped to them, so that common step
     counts (3, 4, 6, 8, 12) with offsets that are multiples of pi/2 use exact weights.
@@ -113,7 +121,7 @@ def phase_shift_coefficients(steps: int, offset: float = 0.0) -> tuple[np.ndarra
     steps = _check_steps(steps)
     if not np.isfinite(offset):
         raise PhaseInputError(f"offset must be finite, got {offset!r}")
-    ang = 2.0 * np.pi * np.arange(steps) / steps + float(offset)
+    ang = 2.0 * np.pi * int(harmonic) * np.arange(steps) / steps + float(offset)
     cos_w, sin_w = np.cos(ang), np.sin(ang)
     for arr in (cos_w, sin_w):
         for exact in (0.0, 0.5, -0.5, 1.0, -1.0):
@@ -170,22 +178,32 @@ def wrapped_phase(images, *, steps: int, offset: float = 0.0) -> WrappedPhase:
     steps = _check_steps(steps)
     images = _check_stack(images, steps)
     cos_w, sin_w = phase_shift_coefficients(steps, offset)
-    s = np.zeros(images.shape[1:], dtype=np.float64)
-    c = np.zeros(images.shape[1:], dtype=np.float64)
-    a = np.zeros(images.shape[1:], dtype=np.float64)
+    cos2_w, sin2_w = phase_shift_coefficients(steps, 2.0 * offset, harmonic=2)
+    shape = images.shape[1:]
+    s = np.zeros(shape, dtype=np.float64)
+    c = np.zeros(shape, dtype=np.float64)
+    a = np.zeros(shape, dtype=np.float64)
+    s2 = np.zeros(shape, dtype=np.float64)
+    c2 = np.zeros(shape, dtype=np.float64)
     for k in range(steps):
         img = images[k].astype(np.float64)
         if sin_w[k]:
             s += sin_w[k] * img
         if cos_w[k]:
             c += cos_w[k] * img
+        if sin2_w[k]:
+            s2 += sin2_w[k] * img
+        if cos2_w[k]:
+            c2 += cos2_w[k] * img
         a += img
     phase = np.arctan2(-s, c)
     phase[phase <= -np.pi] = np.pi
     modulation = np.hypot(s, c)
     modulation *= 2.0 / steps
     a /= steps
-    return WrappedPhase(phase=phase, modulation=modulation, background=a)
+    # (2/N) sum I_k sin^2(theta_k) = A - (1/N) sum I_k cos(2 theta_k)
+    quad = a - (np.cos(2.0 * phase) * c2 - np.sin(2.0 * phase) * s2) / steps
+    return WrappedPhase(phase=phase, modulation=modulation, background=a, quadrature=quad)
 
 
 def saturation_mask(images, *, max_value: float) -> np.ndarray:
@@ -297,7 +315,10 @@ def fuse_hdr(phases: Sequence[WrappedPhase], saturated: Sequence[np.ndarray],
         all_sat &= ~ok
     idx[all_sat] = order[-1]
     out = {}
-    for name in ("phase", "modulation", "background"):
+    names = ["phase", "modulation", "background"]
+    if all(p.quadrature is not None for p in phases):
+        names.append("quadrature")
+    for name in names:
         arr = np.empty(shape, dtype=np.float64)
         for j in range(n):
             sel = idx == j
@@ -313,7 +334,9 @@ def phase_sigma(modulation, background, *, steps: int, noise: NoiseModel) -> np.
 
     Parameters
     ----------
-    modulation, background : array_like, DN (same shape).
+    modulation, background : array_like, DN (same shape). Pass
+        :attr:`WrappedPhase.quadrature` as ``background`` for the exact first-order
+        propagation of intensity-dependent (shot) noise.
     steps : int, N.  noise : NoiseModel.
 
     Returns
