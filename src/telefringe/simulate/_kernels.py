@@ -557,3 +557,30 @@ def sensor_counts(signal_e, normal, read_e, dn_per_e, full_scale, out):
             sd = math.sqrt(max(e, 0.0) + r2)
             dn = np.round((e + sd * normal[r, c]) * dn_per_e)
             out[r, c] = min(max(dn, 0.0), full_scale)
+
+
+@numba.njit(cache=True, parallel=True)
+def accumulate_many(coord, weight, per_pixel, profiles, x_first, inv_step, out):
+    """:func:`accumulate_samples` for several profiles (K, n) at once: each sample's
+    table position is computed once. out (K, P) written."""
+    npix = out.shape[1]
+    nk = profiles.shape[0]
+    last = profiles.shape[1] - 1
+    for p in numba.prange(npix):
+        acc = np.zeros(nk)
+        base = p * per_pixel
+        for s in range(per_pixel):
+            w = weight[base + s]
+            if w == 0.0:
+                continue
+            x = (coord[base + s] - x_first) * inv_step
+            if x < 0.0 or x >= last:
+                continue
+            i = int(x)
+            f = x - i
+            wa = w * (1.0 - f)
+            wb = w * f
+            for k in range(nk):
+                acc[k] += wa * profiles[k, i] + wb * profiles[k, i + 1]
+        for k in range(nk):
+            out[k, p] = acc[k]

@@ -463,26 +463,31 @@ def _line(group, vrig: VirtualRig, k: int | None, *, level: str | None = None) -
     return stack[k, 0, :] if group.axis == "u" else stack[k, :, 0]
 
 
-def _integrate(geom: Geometry, vrig: VirtualRig, axis: str, levels: np.ndarray) -> np.ndarray:
-    """Noise-free camera signal (8-bit DN at exposure 1), (rows, cols), before blur."""
+def _integrate_many(geom: Geometry, vrig: VirtualRig, axis: str, lines) -> np.ndarray:
+    """Noise-free camera signals (8-bit DN at exposure 1) of several 1-D patterns along
+    one axis, before blur: (K, rows, cols) on the traced (padded) grid."""
     ph = vrig.photometry
-    prof, x_first = projector_profile(_emitted(levels, vrig), sigma=ph.projector_blur_px)
+    tables = [projector_profile(_emitted(lv, vrig), sigma=ph.projector_blur_px)
+              for lv in lines]
+    profs = np.ascontiguousarray(np.stack([t[0] for t in tables]))
+    x_first = tables[0][1]
     inv = 1.0 / PROFILE_STEP_PX
     npx = geom.shape[0] * geom.shape[1]
-    out = np.empty(npx)
-    if axis == "u":
-        _k.accumulate_samples(geom.cu1, geom.wu1, geom.n1, prof, x_first, inv, out)
-    else:
-        _k.accumulate_samples(geom.cv1, geom.wv1, geom.n1, prof, x_first, inv, out)
+    out = np.empty((len(lines), npx))
+    c1, w1, c2, w2 = ((geom.cu1, geom.wu1, geom.cu2, geom.wu2) if axis == "u"
+                      else (geom.cv1, geom.wv1, geom.cv2, geom.wv2))
+    _k.accumulate_many(c1, w1, geom.n1, profs, x_first, inv, out)
     if geom.edge_pixels.size:
-        o2 = np.empty(geom.edge_pixels.size)
-        if axis == "u":
-            _k.accumulate_samples(geom.cu2, geom.wu2, geom.n2, prof, x_first, inv, o2)
-        else:
-            _k.accumulate_samples(geom.cv2, geom.wv2, geom.n2, prof, x_first, inv, o2)
-        out[geom.edge_pixels] = o2
+        o2 = np.empty((len(lines), geom.edge_pixels.size))
+        _k.accumulate_many(c2, w2, geom.n2, profs, x_first, inv, o2)
+        out[:, geom.edge_pixels] = o2
     out += geom.ambient
-    return out.reshape(geom.shape)
+    return out.reshape((len(lines),) + geom.shape)
+
+
+def _integrate(geom: Geometry, vrig: VirtualRig, axis: str, levels: np.ndarray) -> np.ndarray:
+    """Noise-free camera signal (8-bit DN at exposure 1), (rows, cols), before blur."""
+    return _integrate_many(geom, vrig, axis, [levels])[0]
 
 
 def _blur_kernel(sigma: float) -> np.ndarray:
@@ -503,13 +508,15 @@ def _sensor(signal_dn8: np.ndarray, vrig: VirtualRig, exposure: float,
     import cv2
 
     ph = vrig.photometry
-    s = np.asarray(signal_dn8, dtype=np.float64) * (exposure * ph.full_well_e / 255.0)
+    scale = exposure * ph.full_well_e / 255.0          # 8-bit DN -> electrons
     if ph.camera_blur_px > 0:
         k = _blur_kernel(ph.camera_blur_px)
-        s = cv2.sepFilter2D(s, cv2.CV_64F, k, k, borderType=cv2.BORDER_REPLICATE)
+        s = cv2.sepFilter2D(np.asarray(signal_dn8, dtype=np.float64), cv2.CV_64F, k,
+                            k * scale, borderType=cv2.BORDER_REPLICATE)
+    else:
+        s = np.asarray(signal_dn8, dtype=np.float64) * scale
     if pad:
         s = s[pad:-pad, pad:-pad]
-    s = np.ascontiguousarray(s)
     normal = rng.standard_normal(s.shape, dtype=np.float32)
     full = ph.full_scale_dn
     out = np.empty(s.shape, dtype=np.uint8 if ph.bit_depth == 8 else np.uint16)
@@ -578,22 +585,27 @@ def render_scan(vrig: VirtualRig, scene, groups, *, white: bool = True, black: b
     tick(4)
     rng = np.random.default_rng(seed)
     stacks = []
+    cache: tuple = (None, None)      # (group key, signals): HDR repeats reuse the signals
     for g in out_groups:
+        if cache[0] != g.key:
+            lines = [_line(g, vrig, k) for k in range(g.count)]
+            cache = (g.key, _integrate_many(geom, vrig, g.axis, lines))
         imgs = []
         for k in range(g.count):
-            imgs.append(render_images(geom, vrig, g.axis, _line(g, vrig, k),
-                                      exposure=g.exposure, rng=rng))
+            imgs.append(_sensor(cache[1][k], vrig, g.exposure, rng, geom.pad))
             tick()
         stacks.append(np.stack(imgs))
+    cache = (None, None)
     w_img = b_img = None
-    if white:
-        w_img = render_images(geom, vrig, "u", _line(None, vrig, None, level="white"),
-                              exposure=exposures[0], rng=rng)
-        tick()
-    if black:
-        b_img = render_images(geom, vrig, "u", _line(None, vrig, None, level="black"),
-                              exposure=exposures[0], rng=rng)
-        tick()
+    flat = [lv for want, lv in ((white, "white"), (black, "black")) if want]
+    if flat:
+        sig = _integrate_many(geom, vrig, "u", [_line(None, vrig, None, level=lv)
+                                                for lv in flat])
+        imgs = {}
+        for lv, s in zip(flat, sig, strict=True):
+            imgs[lv] = _sensor(s, vrig, exposures[0], rng, geom.pad)
+            tick()
+        w_img, b_img = imgs.get("white"), imgs.get("black")
     proj = vrig.projector.intrinsics
     man = ScanManifest(projector_width=proj.width, projector_height=proj.height,
                        groups=tuple(out_groups), white=None, black=None)
