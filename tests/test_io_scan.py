@@ -262,7 +262,7 @@ def broken_scan_docs(draw):
     raise AssertionError(case)
 
 
-@settings(max_examples=400, deadline=None, derandomize=True)
+@settings(max_examples=200, deadline=None, derandomize=True)
 @given(case=broken_scan_docs())
 def test_broken_scan_manifests_are_refused_naming_file_and_field(case):
     doc, tokens = case
@@ -275,7 +275,7 @@ def test_broken_scan_manifests_are_refused_naming_file_and_field(case):
     assert "\n" not in msg
 
 
-@settings(max_examples=200, deadline=None, derandomize=True)
+@settings(max_examples=120, deadline=None, derandomize=True)
 @given(doc=st.recursive(st.none() | st.booleans() | st.floats() | st.integers() | st.text(),
                         lambda c: st.lists(c, max_size=3)
                         | st.dictionaries(st.sampled_from(["format", "version", "projector",
@@ -317,7 +317,7 @@ def stub_scan_dir(tmp_path_factory):
     return folder
 
 
-@settings(max_examples=150, deadline=None, derandomize=True,
+@settings(max_examples=100, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(case=broken_scan_docs())
 def test_broken_scan_manifests_on_disk(stub_scan_dir, case):
@@ -666,7 +666,7 @@ def broken_cal_docs(draw):
     raise AssertionError(case)
 
 
-@settings(max_examples=250, deadline=None, derandomize=True)
+@settings(max_examples=150, deadline=None, derandomize=True)
 @given(case=broken_cal_docs())
 def test_broken_calibration_manifests_are_refused(case):
     doc, tokens = case

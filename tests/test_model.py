@@ -245,7 +245,7 @@ def test_project_known_values_and_shapes():
 
 
 # --------------------------------------------------------------------------- rotations
-@settings(max_examples=150, deadline=None, derandomize=True)
+@settings(max_examples=100, deadline=None, derandomize=True)
 @given(rv=rotvecs())
 def test_rotvec_round_trip_including_0_and_pi(rv):
     R = rotation_from_rotvec(rv)
