@@ -187,6 +187,19 @@ def test_marker_centres_with_noise_within_their_sigma():
     assert np.all(mc.sigma_xyz[:, 2] > m1.sigma_xyz[:, 2])
 
 
+def test_marker_centre_pixel_error_propagates():
+    cloud, centres, truth = plate_cloud()
+    rng = np.random.default_rng(11)
+    s_px = 0.05
+    noisy = centres + s_px * rng.standard_normal(centres.shape)
+    mc = marker_centres_3d(cloud, noisy, sigma_px=s_px)
+    err = (mc.xyz - truth)[:, :2] / mc.sigma_xyz[:, :2]
+    # 99 markers: the RMS of standard normal errors lies within 0.75..1.25 (4 sigma)
+    assert np.all(np.abs(np.sqrt(np.mean(err**2, axis=0)) - 1.0) < 0.25)
+    # about 0.03 mm per px here
+    assert np.allclose(mc.sigma_xyz[:, 0], s_px * 0.03, rtol=0.05)
+
+
 def test_grid_spacing_and_plate():
     cloud, centres, truth = plate_cloud(sigma=0.002, seed=5)
     pitch_mm = np.linalg.norm(truth[1] - truth[0])

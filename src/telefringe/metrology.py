@@ -384,8 +384,8 @@ def _poly_design(du: np.ndarray, dv: np.ndarray, degree: int) -> np.ndarray:
 
 
 def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None = None,
-                      outer_px: float | None = None, degree: int = 2,
-                      min_points: int = 30) -> MarkerCentres:
+                      outer_px: float | None = None, degree: int = 2, min_points: int = 30,
+                      sigma_px=0.0) -> MarkerCentres:
     """3D position of marker centres from their camera-image centres.
 
     Around each marker, X, Y and Z of the cloud are smooth functions of the camera pixel
@@ -406,6 +406,10 @@ def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None =
         plate, end at 0.25).
     degree : int, 1 or 2 (or 3).
     min_points : int, fewer valid points in the annulus leaves the marker unmeasured.
+    sigma_px : float or (n,) array_like
+        Standard uncertainty of the image centres (px, per axis). The uncertainty of the
+        result includes it (through the local slopes of X, Y, Z with u and v) besides the
+        noise of the cloud; with the default 0 only the cloud's noise counts.
 
     Returns
     -------
@@ -435,6 +439,7 @@ def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None =
     xyz = cloud.xyz
     sig = cloud.sigma_line
     n = c.shape[0]
+    s_px = np.broadcast_to(np.asarray(sigma_px, dtype=np.float64), (n,))
     out = np.full((n, 3), np.nan)
     out_s = np.full((n, 3), np.nan)
     npts = np.zeros(n, dtype=np.int64)
@@ -484,7 +489,9 @@ def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None =
         s2 = np.sum(res * res, axis=0) / dof  # per coordinate
         cov00 = np.linalg.inv(Ak.T @ Ak)[0, 0]
         out[k] = coef[0]
-        out_s[k] = np.sqrt(s2 * cov00)
+        # the centre's own error moves the point along the surface: d xyz / d(u, v)
+        slope2 = (coef[1] ** 2 + coef[2] ** 2) / outer_px**2
+        out_s[k] = np.sqrt(s2 * cov00 + s_px[k] ** 2 * slope2)
         npts[k] = int(np.count_nonzero(keep))
     return MarkerCentres(out, out_s, npts, np.all(np.isfinite(out), axis=1))
 

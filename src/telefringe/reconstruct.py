@@ -48,6 +48,8 @@ __all__ = [
     "triangulate",
     "triangulate_pixels",
     "height_map",
+    "Reconstruction",
+    "reconstruct_scan",
     "FLAG_NO_PHASE",
     "FLAG_INCONSISTENT",
     "FLAG_OUTSIDE",
@@ -798,3 +800,72 @@ def _raster_kernel(xyz, sz, x0, y0, p, zmap, smap):  # pragma: no cover - numba
                         xyz[r + 1, c + 1, 0], xyz[r + 1, c + 1, 1], z11, sz[r + 1, c + 1],
                         xyz[r + 1, c, 0], xyz[r + 1, c, 1], z10, sz[r + 1, c],
                         x0, y0, p, zmap, smap)
+
+
+# --------------------------------------------------------------------------------------
+# The whole step: scan -> cloud -> height map
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class Reconstruction:
+    """What :func:`reconstruct_scan` makes of one scan.
+
+    Attributes
+    ----------
+    coords : telefringe.decode.ProjectorCoordinates
+    cloud : PointCloud
+    height : HeightMap or None
+    texture : (rows, cols) ndarray of float32, the fringe-free camera image (white frame
+        or mean of a phase group), for marker detection and display.
+    """
+
+    coords: object
+    cloud: PointCloud
+    height: HeightMap | None
+    texture: np.ndarray
+
+
+def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
+                     max_sigma_z: float | None = None, pixel_mm: float | None = None,
+                     with_height_map: bool = True, **decode_options) -> Reconstruction:
+    """Decode a scan and triangulate it with a rig (what ``telefringe reconstruct`` does).
+
+    Parameters
+    ----------
+    scan : telefringe.scan.Scan
+    rig : Rig
+    max_residual, max_sigma_z : see :func:`triangulate`.
+    pixel_mm : grid spacing of the height map (default: the camera's footprint).
+    with_height_map : bool, resample the cloud on a regular XY grid.
+    **decode_options : passed to :func:`telefringe.decode.decode` (``method``,
+        ``gamma_correction``, ``min_modulation``, ...).
+
+    Raises
+    ------
+    TriangulationError
+        When the scan's image size or projector size does not match the rig.
+    telefringe.decode.DecodeError
+        When the scan cannot be decoded.
+    """
+    from .decode import decode
+    from .targets import fringe_free_image
+
+    shape = tuple(int(n) for n in scan.stacks[0].shape[1:])
+    kc = rig.camera.intrinsics
+    if kc.width and kc.height and (kc.height, kc.width) != shape:
+        raise TriangulationError(
+            f"the scan's images are {shape[1]} x {shape[0]} (width x height) but the rig's "
+            f"camera is {kc.width} x {kc.height}: the rig does not belong to this scan")
+    kp = rig.projector.intrinsics
+    man = scan.manifest
+    if kp.width and kp.height and (man.projector_width, man.projector_height) != (
+            kp.width, kp.height):
+        raise TriangulationError(
+            f"the scan's patterns are for a {man.projector_width} x {man.projector_height} "
+            f"projector but the rig's projector is {kp.width} x {kp.height}")
+    coords = decode(scan, **decode_options)
+    cloud = triangulate(rig, coords, max_residual=max_residual, max_sigma_z=max_sigma_z)
+    hm = None
+    if with_height_map and cloud.count >= 3:
+        hm = height_map(cloud, pixel_mm=pixel_mm)
+    texture = np.asarray(fringe_free_image(scan), dtype=np.float32)
+    return Reconstruction(coords, cloud, hm, texture)

@@ -1,10 +1,233 @@
-"""`telefringe measure` command(s)."""
+"""`telefringe measure plate|sphere|bga|steps OUT`: measurements on a reconstruction."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
+
+from ._common import info
+
+measure_app = typer.Typer(
+    name="measure",
+    help="Measure a reconstruction (the OUT folder of 'telefringe reconstruct', which holds "
+         "points.npz).\n\nExample: telefringe measure bga part_3d --rows 24 --cols 24",
+    no_args_is_help=True,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+_JSON_HELP = "Also write the results to this JSON file."
+
+
+def _load(out: Path):
+    from ..io.export import read_points
+
+    return read_points(out)
+
+
+def _metrology_errors():
+    from ..metrology import MetrologyError
+
+    return MetrologyError
+
+
+def _fail(out, exc):
+    from ..io.errors import InputError
+
+    raise InputError(f"{out}: {exc}") from None
+
+
+def _um(x) -> str:
+    return f"{float(x) * 1000:.2f} um"
+
+
+def _save_json(path: Path | None, obj, force: bool) -> None:
+    if path is None:
+        return
+    from ..io.export import write_json
+
+    write_json(path, obj, force=force)
+    info(f"wrote {path}")
+
+
+def _check_outputs(paths, force: bool) -> None:
+    from ..io.atomic import check_can_write
+
+    for p in paths:
+        if p is not None:
+            check_can_write(p, force=force)
+
+
+# --------------------------------------------------------------------------------------
+def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3.0,
+                         dark: bool = True):
+    """Detect the circle grid in ``out``'s texture and measure the plate
+    (PlateMeasurement). User problems raise InputError."""
+    from ..metrology import measure_plate
+    from ..targets import detect_circle_grid
+
+    out = Path(out)
+    cloud, texture = _load(out)
+    if texture is None:
+        _fail(out, "points.npz has no 'texture' image to find the markers in "
+                   "(reconstruct the scan again with this version)")
+    det = detect_circle_grid(texture, rows=rows, cols=cols, dark=dark)
+    if not det:
+        _fail(out, f"the {rows} x {cols} circle grid was not found: {det.reason}")
+    try:
+        return measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch)
+    except _metrology_errors() as exc:
+        _fail(out, exc)
+
+
+def plate_cmd(
+    out: Path = typer.Argument(..., help="Reconstruction folder (points.npz)."),
+    rows: int = typer.Option(9, "--rows", help="Marker rows of the plate."),
+    cols: int = typer.Option(11, "--cols", help="Marker columns of the plate."),
+    pitch: float = typer.Option(3.0, "--pitch", help="Nominal marker pitch (mm)."),
+    dark: bool = typer.Option(True, "--dark/--light", help="Dark markers on a light plate."),
+    json_path: Path = typer.Option(None, "--json", help=_JSON_HELP),
+    force: bool = typer.Option(False, "--force", help="Replace existing output files."),
+):
+    """Circle-marker plate: plane height above the reference (Z), flatness, and distances
+    between neighbouring markers along X and Y (mean, abs error, std), as in the paper's
+    Table 3.
+
+    Example: telefringe measure plate plate_3d --json plate.json
+    """
+    from ..io.export import plate_summary
+
+    _check_outputs([json_path], force)
+    m = measure_plate_folder(out, rows=rows, cols=cols, pitch=pitch, dark=dark)
+    sp = m.spacing
+    info(f"plane: Z = {m.z.distance:.5f} mm (+- {_um(m.z.sigma)}), tilt "
+         f"{m.z.angle_deg:.4f} deg, flatness {_um(m.plane.flatness)}, rms {_um(m.plane.rms)}")
+    info(f"markers measured: {int(m.centres.valid.sum())} of {rows * cols}")
+    info(f"X: mean {sp.mean_x:.4f} mm, abs err {_um(sp.abs_err_x)}, std {_um(sp.std_x)} "
+         f"({sp.n_x} distances)")
+    info(f"Y: mean {sp.mean_y:.4f} mm, abs err {_um(sp.abs_err_y)}, std {_um(sp.std_y)} "
+         f"({sp.n_y} distances)")
+    _save_json(json_path, plate_summary(m), force)
+
+
+def sphere_cmd(
+    out: Path = typer.Argument(..., help="Reconstruction folder (points.npz)."),
+    min_height: float = typer.Option(None, "--min-height",
+                                     help="Height above the base plane (mm) from which a "
+                                          "point belongs to the sphere (default: automatic)."),
+    json_path: Path = typer.Option(None, "--json", help=_JSON_HELP),
+    force: bool = typer.Option(False, "--force", help="Replace existing output files."),
+):
+    """Sphere standing on a plane: radius, centre and form error (algebraic start,
+    geometric least squares, robust).
+
+    Example: telefringe measure sphere sphere_3d --json sphere.json
+    """
+    from ..io.export import sphere_summary
+    from ..metrology import measure_sphere
+
+    _check_outputs([json_path], force)
+    cloud, _ = _load(out)
+    try:
+        f, base = measure_sphere(cloud, min_height=min_height)
+    except _metrology_errors() as exc:
+        _fail(out, exc)
+    c = f.centre
+    info(f"radius {f.radius:.4f} mm (+- {_um(f.sigma_radius)}), diameter {f.diameter:.4f} mm")
+    info(f"centre ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f}) mm")
+    info(f"form error {_um(f.form_error)} (peak-to-valley), rms {_um(f.rms)}, "
+         f"{f.n_inliers} points")
+    _save_json(json_path, sphere_summary(f, base), force)
+
+
+def measure_bga_folder(out, *, rows: int, cols: int, pitch: float = 0.8,
+                       diameter: float = 0.45):
+    """Measure the BGA in ``out`` (BGAMeasurement). User problems raise InputError."""
+    from ..metrology import BGANominal, measure_bga
+
+    out = Path(out)
+    cloud, _ = _load(out)
+    try:
+        nominal = BGANominal(rows=rows, cols=cols, pitch_mm=pitch, ball_diameter_mm=diameter)
+        return measure_bga(cloud, nominal)
+    except _metrology_errors() as exc:
+        _fail(out, exc)
+
+
+def bga_cmd(
+    out: Path = typer.Argument(..., help="Reconstruction folder (points.npz)."),
+    rows: int = typer.Option(..., "--rows", help="Ball rows of the nominal grid."),
+    cols: int = typer.Option(..., "--cols", help="Ball columns of the nominal grid."),
+    pitch: float = typer.Option(0.8, "--pitch", help="Nominal ball pitch (mm)."),
+    diameter: float = typer.Option(0.45, "--diameter", help="Nominal ball diameter (mm)."),
+    csv_path: Path = typer.Option(None, "--csv", help="Per-ball CSV (default OUT/bga.csv)."),
+    map_path: Path = typer.Option(None, "--map",
+                                  help="PNG map coloured by height (default OUT/bga.png)."),
+    json_path: Path = typer.Option(None, "--json", help=_JSON_HELP),
+    force: bool = typer.Option(False, "--force", help="Replace existing output files."),
+):
+    """Ball grid array: each ball's apex height above the substrate, diameter and
+    position; pitch to neighbours; missing balls; coplanarity against the JEDEC seating
+    plane (the plane the package rests on, through three balls around its centre of
+    gravity). Writes a CSV per ball and a PNG map.
+
+    Example: telefringe measure bga bga_3d --rows 24 --cols 24 --json bga.json
+    """
+    from ..io.export import bga_summary, write_bga_csv, write_bga_png
+
+    out = Path(out)
+    csv_path = out / "bga.csv" if csv_path is None else csv_path
+    map_path = out / "bga.png" if map_path is None else map_path
+    _check_outputs([csv_path, map_path, json_path], force)
+    m = measure_bga_folder(out, rows=rows, cols=cols, pitch=pitch, diameter=diameter)
+    import numpy as np
+
+    info(f"balls found: {m.n_balls} of {int(m.nominal.populated().sum())}; missing: "
+         f"{', '.join(f'({i},{j})' for i, j in m.missing) or 'none'}")
+    info(f"apex height: mean {np.mean(m.height):.4f} mm, min {np.min(m.height):.4f}, max "
+         f"{np.max(m.height):.4f} (median sigma {_um(np.median(m.sigma_height))})")
+    info(f"diameter: mean {np.mean(m.diameter):.4f} mm")
+    info(f"pitch: largest error {_um(m.pitch_error_max)}")
+    info(f"coplanarity (JEDEC seating plane): {_um(m.coplanarity.value)}")
+    write_bga_csv(csv_path, m, force=force)
+    write_bga_png(map_path, m, force=force)
+    info(f"wrote {csv_path} and {map_path}")
+    _save_json(json_path, bga_summary(m), force)
+
+
+def steps_cmd(
+    out: Path = typer.Argument(..., help="Reconstruction folder (points.npz)."),
+    min_step: float = typer.Option(0.05, "--min-step", help="Smallest step to detect (mm)."),
+    json_path: Path = typer.Option(None, "--json", help=_JSON_HELP),
+    force: bool = typer.Option(False, "--force", help="Replace existing output files."),
+):
+    """Step gauge: the heights of its flat levels (parallel planes fitted jointly) and of
+    each step.
+
+    Example: telefringe measure steps steps_3d --json steps.json
+    """
+    from ..io.export import steps_summary
+    from ..metrology import measure_steps
+
+    _check_outputs([json_path], force)
+    cloud, _ = _load(out)
+    try:
+        m = measure_steps(cloud, min_step=min_step)
+    except _metrology_errors() as exc:
+        _fail(out, exc)
+    for k, (h, s, n) in enumerate(zip(m.heights, m.sigma_heights, m.n_points, strict=True)):
+        info(f"level {k}: {h:.4f} mm above level 0 (+- {_um(s)}), {n} points")
+    for k, (h, s) in enumerate(zip(m.step_heights, m.sigma_steps, strict=True)):
+        info(f"step {k} -> {k + 1}: {h:.4f} mm (+- {_um(s)})")
+    _save_json(json_path, steps_summary(m), force)
+
+
+measure_app.command("plate")(plate_cmd)
+measure_app.command("sphere")(sphere_cmd)
+measure_app.command("bga")(bga_cmd)
+measure_app.command("steps")(steps_cmd)
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's command(s) to the app (filled in by the measure work)."""
-    del app
+    """Add ``measure`` (plate, sphere, bga, steps) to the app."""
+    app.add_typer(measure_app, name="measure")

@@ -39,6 +39,12 @@ __all__ = [
     "write_reconstruction",
     "to_jsonable",
     "write_json",
+    "plane_summary",
+    "plate_summary",
+    "sphere_summary",
+    "bga_summary",
+    "steps_summary",
+    "cloud_summary",
 ]
 
 POINTS_FORMAT = "telefringe-points"
@@ -436,3 +442,122 @@ def write_reconstruction(folder, cloud, hm=None, *, texture=None, title: str | N
         out["heightmap_png"] = write_height_png(folder / "heightmap.png", hm, title=title,
                                                 force=force)
     return out
+
+
+# --------------------------------------------------------------------------------------
+# Compact summaries (JSON-ready dicts; no per-point arrays)
+# --------------------------------------------------------------------------------------
+def _f(x):
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def cloud_summary(cloud) -> dict:
+    """Counts and uncertainty figures of a point cloud."""
+    from ..reconstruct import (
+        FLAG_INCONSISTENT,
+        FLAG_NO_PHASE,
+        FLAG_NOT_CONVERGED,
+        FLAG_OUTSIDE,
+        FLAG_UNCERTAIN,
+    )
+
+    fl = np.asarray(cloud.flags)
+    sz = np.asarray(cloud.sigma_z)[np.asarray(cloud.mask)]
+    out = {
+        "pixels": int(fl.size), "valid": int(cloud.count),
+        "valid_fraction": _f(cloud.count / max(fl.size, 1)),
+        "invalid": {name: int(np.count_nonzero(fl & bit)) for name, bit in (
+            ("no_phase", FLAG_NO_PHASE), ("inconsistent", FLAG_INCONSISTENT),
+            ("outside_projector", FLAG_OUTSIDE), ("not_converged", FLAG_NOT_CONVERGED),
+            ("uncertain", FLAG_UNCERTAIN))},
+        "sigma_z_median_mm": _f(np.median(sz)) if sz.size and np.isfinite(sz).all() else None,
+        "sigma_z_p95_mm": (_f(np.percentile(sz, 95)) if sz.size and np.isfinite(sz).all()
+                           else None),
+    }
+    if cloud.residual is not None:
+        r = np.asarray(cloud.residual)[np.asarray(cloud.mask)]
+        r = r[np.isfinite(r)]
+        out["residual_median_px"] = _f(np.median(r)) if r.size else None
+        out["residual_p99_px"] = _f(np.percentile(r, 99)) if r.size else None
+    return out
+
+
+def plane_summary(p) -> dict:
+    """A :class:`telefringe.metrology.PlaneFit` without its per-point arrays."""
+    return {"normal": to_jsonable(p.normal), "offset_mm": _f(p.offset),
+            "centroid_mm": to_jsonable(p.centroid), "rms_mm": _f(p.rms),
+            "flatness_mm": _f(p.flatness), "tilt_deg": _f(p.tilt_deg),
+            "n_points": int(p.n_points), "n_inliers": int(p.n_inliers),
+            "sigma_offset_mm": _f(p.sigma_offset)}
+
+
+def plate_summary(m) -> dict:
+    """A :class:`telefringe.metrology.PlateMeasurement` as in the paper's Table 3."""
+    sp = m.spacing
+    return {
+        "z_mm": _f(m.z.distance), "sigma_z_mm": _f(m.z.sigma),
+        "angle_to_reference_deg": _f(m.z.angle_deg),
+        "plane": plane_summary(m.plane),
+        "spacing": {
+            "nominal_mm": _f(sp.nominal_mm),
+            "mean_x_mm": _f(sp.mean_x), "mean_y_mm": _f(sp.mean_y),
+            "abs_err_x_mm": _f(sp.abs_err_x), "abs_err_y_mm": _f(sp.abs_err_y),
+            "std_x_mm": _f(sp.std_x), "std_y_mm": _f(sp.std_y),
+            "rms_err_x_mm": _f(sp.rms_err_x), "rms_err_y_mm": _f(sp.rms_err_y),
+            "n_x": int(sp.n_x), "n_y": int(sp.n_y),
+            "dist_x_mm": to_jsonable(sp.dist_x), "dist_y_mm": to_jsonable(sp.dist_y),
+        },
+        "markers": {"measured": int(np.count_nonzero(m.centres.valid)),
+                    "centres_mm": to_jsonable(m.centres.xyz),
+                    "sigma_mm": to_jsonable(m.centres.sigma_xyz)},
+    }
+
+
+def sphere_summary(f, base=None) -> dict:
+    """A :class:`telefringe.metrology.SphereFit` (and its base plane)."""
+    out = {"centre_mm": to_jsonable(f.centre), "radius_mm": _f(f.radius),
+           "diameter_mm": _f(f.diameter), "sigma_centre_mm": to_jsonable(f.sigma_centre),
+           "sigma_radius_mm": _f(f.sigma_radius), "rms_mm": _f(f.rms),
+           "form_error_mm": _f(f.form_error), "n_points": int(f.n_points),
+           "n_inliers": int(f.n_inliers)}
+    if base is not None:
+        out["base_plane"] = plane_summary(base)
+    return out
+
+
+def bga_summary(m) -> dict:
+    """A :class:`telefringe.metrology.BGAMeasurement` (per-ball arrays included)."""
+    fin = np.concatenate([np.asarray(m.pitch_x)[np.isfinite(m.pitch_x)],
+                          np.asarray(m.pitch_y)[np.isfinite(m.pitch_y)]])
+    nom = m.nominal
+    return {
+        "nominal": {"rows": int(nom.rows), "cols": int(nom.cols), "pitch_mm": _f(nom.pitch_mm),
+                    "ball_diameter_mm": _f(nom.ball_diameter_mm)},
+        "balls_found": int(m.n_balls), "missing": [list(x) for x in m.missing],
+        "unexpected": [list(x) for x in m.unexpected],
+        "coplanarity_mm": _f(m.coplanarity.value),
+        "seating_contacts": [list(map(int, m.index[k])) for k in m.coplanarity.contacts],
+        "height_mean_mm": _f(np.mean(m.height)), "height_min_mm": _f(np.min(m.height)),
+        "height_max_mm": _f(np.max(m.height)),
+        "diameter_mean_mm": _f(np.mean(m.diameter)),
+        "pitch_mean_mm": _f(np.mean(fin)) if fin.size else None,
+        "pitch_std_mm": _f(np.std(fin, ddof=1)) if fin.size > 1 else None,
+        "pitch_error_max_mm": _f(m.pitch_error_max),
+        "grid_angle_deg": _f(m.grid_angle_deg),
+        "substrate": plane_summary(m.substrate),
+        "balls": {"index": to_jsonable(m.index), "height_mm": to_jsonable(m.height),
+                  "sigma_height_mm": to_jsonable(m.sigma_height),
+                  "diameter_mm": to_jsonable(m.diameter), "centre_mm": to_jsonable(m.centre),
+                  "apex_mm": to_jsonable(m.apex)},
+    }
+
+
+def steps_summary(m) -> dict:
+    """A :class:`telefringe.metrology.StepMeasurement` without the label image."""
+    return {"levels": int(len(m.offsets)), "normal": to_jsonable(m.normal),
+            "heights_mm": to_jsonable(m.heights),
+            "sigma_heights_mm": to_jsonable(m.sigma_heights),
+            "step_heights_mm": to_jsonable(m.step_heights),
+            "sigma_steps_mm": to_jsonable(m.sigma_steps), "rms_mm": to_jsonable(m.rms),
+            "n_points": to_jsonable(m.n_points)}

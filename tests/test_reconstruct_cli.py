@@ -1,0 +1,97 @@
+"""`telefringe reconstruct` / `telefringe measure` on a simulated scan folder."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+sim = pytest.importorskip("telefringe.simulate.render")
+from telefringe.cli import main  # noqa: E402
+from telefringe.cli.reconstruct import reconstruct_to_folder  # noqa: E402
+from telefringe.io.errors import InputError  # noqa: E402
+from telefringe.io.scan import write_scan  # noqa: E402
+from telefringe.simulate import scenes  # noqa: E402
+from telefringe.simulate.presets import get_preset  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def plate_out(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("recon")
+    vr = get_preset("fast")
+    scan, truth = sim.render_scan(vr, scenes.plate_at_z(-0.5), sim.default_groups(vr), seed=2)
+    write_scan(tmp / "scan", scan)
+    out = tmp / "out"
+    rec = reconstruct_to_folder(tmp / "scan", vr.rig, out)
+    return tmp, out, rec, vr
+
+
+def test_reconstruct_folder_outputs(plate_out):
+    tmp, out, rec, vr = plate_out
+    names = {p.name for p in out.iterdir()}
+    assert {"points.npz", "cloud.ply", "heightmap.tif", "heightmap.json", "heightmap.png",
+            "summary.json"} <= names
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["valid"] == rec.cloud.count > 0
+    assert summary["sigma_z_median_mm"] < 0.02
+    # no overwrite without force, and nothing half-written on failure
+    with pytest.raises(InputError, match="already exists"):
+        reconstruct_to_folder(tmp / "scan", vr.rig, out)
+    # a rig whose projector does not match the scan's patterns
+    from dataclasses import replace
+
+    from telefringe.model import Rig, TelecentricDevice
+
+    p = vr.rig.projector
+    bad = Rig(vr.rig.camera, TelecentricDevice(replace(p.intrinsics, width=800, height=600),
+                                               p.R_dev_world, p.t_dev))
+    with pytest.raises(InputError, match="projector"):
+        reconstruct_to_folder(tmp / "scan", bad, tmp / "bad")
+    assert not (tmp / "bad").exists()
+    c = vr.rig.camera
+    bad = Rig(TelecentricDevice(replace(c.intrinsics, width=640, height=512), c.R_dev_world,
+                                c.t_dev), vr.rig.projector)
+    with pytest.raises(InputError, match="does not belong"):
+        reconstruct_to_folder(tmp / "scan", bad, tmp / "bad")
+    assert not (tmp / "bad").exists()
+
+
+def test_measure_plate_cli(plate_out, capsys):
+    tmp, out, rec, vr = plate_out
+    js = tmp / "plate.json"
+    assert main(["measure", "plate", str(out), "--json", str(js)]) == 0
+    res = json.loads(js.read_text())
+    assert res["z_mm"] == pytest.approx(-0.5, abs=1e-3)
+    assert res["spacing"]["n_x"] == 90
+    assert abs(res["spacing"]["mean_x_mm"] - 3.0) < 2e-3
+    printed = capsys.readouterr().out
+    assert "Z = -0.499" in printed or "Z = -0.500" in printed
+    # an existing JSON is not replaced without --force
+    assert main(["measure", "plate", str(out), "--json", str(js)]) == 2
+    assert main(["measure", "plate", str(out), "--json", str(js), "--force"]) == 0
+
+
+def test_measure_errors(plate_out, tmp_path, capsys):
+    tmp, out, rec, vr = plate_out
+    assert main(["measure", "steps", str(tmp_path)]) == 2
+    assert "not found" in capsys.readouterr().err
+    # a plate has no balls
+    assert main(["measure", "bga", str(out), "--rows", "4", "--cols", "4", "--csv",
+                 str(tmp_path / "b.csv"), "--map", str(tmp_path / "b.png")]) == 2
+    assert "no ball" in capsys.readouterr().err.replace("\n", " ")
+    assert not (tmp_path / "b.csv").exists()
+    # the wrong grid size
+    assert main(["measure", "plate", str(out), "--rows", "5", "--cols", "5"]) == 2
+    assert main(["measure", "--help"]) == 0
+
+
+def test_height_map_of_the_plate(plate_out):
+    from telefringe.io.export import read_height_tiff
+
+    tmp, out, rec, vr = plate_out
+    hm = read_height_tiff(out / "heightmap.tif")
+    z = hm.z[np.isfinite(hm.z)]
+    # the plate at -0.5 mm fills most of the map; markers' edges add a few outliers
+    assert np.median(z) == pytest.approx(-0.5, abs=2e-3)
+    assert hm.pixel_mm == pytest.approx(0.0208 / 0.1597, rel=0.02)
