@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/telefringe demo
+	$(BIN)/telefringe demo telefringe-demo --force
 
 test: $(STAMP)
 	$(BIN)/ruff check .
