@@ -372,6 +372,16 @@ def test_bga_balls_heights_pitch_missing():
     assert len(cop.contacts) >= 3
 
 
+def test_bga_grid_from_the_balls():
+    cloud, present, offs, apex = bga_cloud(missing=((2, 3),))
+    m = measure_bga(cloud, BGANominal(rows=None, cols=None, pitch_mm=0.8,
+                                      ball_diameter_mm=0.45))
+    assert (m.nominal.rows, m.nominal.cols) == (6, 7)
+    assert m.missing == ((2, 3),) and m.n_balls == 41
+    with pytest.raises(MetrologyError, match="both"):
+        BGANominal(rows=3, cols=None, pitch_mm=0.8, ball_diameter_mm=0.45)
+
+
 def brute_force_coplanarity(m):
     """Seating plane by enumeration: the triple whose plane has every apex below it and
     whose triangle contains the centre of gravity; coplanarity = max distance."""

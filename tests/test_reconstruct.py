@@ -69,6 +69,23 @@ def surface_points(rig, shape=SHAPE, *, seed=0, depth=2.0):
     return X, up, vp
 
 
+def test_compiled_undistortion_matches_the_model():
+    from telefringe.model import ConvergenceError, undistort_sensor
+    from telefringe.reconstruct import _undistort
+
+    rng = np.random.default_rng(5)
+    xd, yd = rng.uniform(-3, 3, (2, 1000))
+    for k in [(2e-3, 2e-4, -1e-4), (0.0, 0.0, 0.0), (-5e-3, 0.0, 1e-3)]:
+        a = _undistort(xd, yd, *k)
+        b = undistort_sensor(xd, yd, *k)
+        assert np.max(np.abs(a[0] - b[0])) < 1e-13 and np.max(np.abs(a[1] - b[1])) < 1e-13
+    xd[3] = np.nan
+    assert np.isnan(_undistort(xd, yd, *k)[0][3])
+    # beyond the invertible range: the model's error
+    with pytest.raises(ConvergenceError):
+        _undistort(np.array([30.0]), np.array([30.0]), -0.05, 0.0, 0.0)
+
+
 def test_camera_looks_down():
     rig = make_rig()
     assert rig.camera.axis_world[2] < -0.99

@@ -16,7 +16,7 @@ Conventions
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -827,22 +827,28 @@ class BGANominal:
 
     Attributes
     ----------
-    rows, cols : int.   pitch_mm, ball_diameter_mm : float.
+    rows, cols : int, or None: the grid spanned by the balls found (then a missing ball
+        on the outer rows or columns cannot be told from a smaller grid).
+    pitch_mm, ball_diameter_mm : float.
     present : (rows, cols) bool, optional: populated positions (default: all).
     centre_of_gravity : (2,) world (x, y) mm, optional: where the package's weight acts,
         for the seating plane (default: the centre of the ball grid).
     """
 
-    rows: int
-    cols: int
+    rows: int | None
+    cols: int | None
     pitch_mm: float
     ball_diameter_mm: float
     present: np.ndarray | None = None
     centre_of_gravity: tuple | None = None
 
     def __post_init__(self):
-        if int(self.rows) < 1 or int(self.cols) < 1:
+        if (self.rows is None) != (self.cols is None):
+            raise MetrologyError("give both rows and cols, or neither")
+        if self.rows is not None and (int(self.rows) < 1 or int(self.cols) < 1):
             raise MetrologyError("rows and cols must be >= 1")
+        if self.rows is None and self.present is not None:
+            raise MetrologyError("a populated map needs rows and cols")
         if not (np.isfinite(self.pitch_mm) and self.pitch_mm > 0):
             raise MetrologyError("pitch_mm must be > 0")
         if not (np.isfinite(self.ball_diameter_mm) and 0 < self.ball_diameter_mm):
@@ -1032,6 +1038,8 @@ def _register_grid(pos: np.ndarray, pitch: float, rows: int, cols: int,
         raise MetrologyError("no ball lies on a lattice of the nominal pitch")
     kmin = k[on_grid].min(axis=0)
     span = k[on_grid].max(axis=0) - kmin + 1  # (cols, rows)
+    if rows is None:
+        return None, theta, None, span
     if span[0] > cols or span[1] > rows:
         raise MetrologyError(
             f"the balls found span {span[1]} x {span[0]} positions, more than the nominal "
@@ -1058,7 +1066,7 @@ def _register_grid(pos: np.ndarray, pitch: float, rows: int, cols: int,
     idx[on_grid, 0] = k[on_grid, 1] - kmin[1] + si
     idx[on_grid, 1] = k[on_grid, 0] - kmin[0] + sj
     origin_local = (np.array([kmin[0] - sj, kmin[1] - si]) + off) * pitch
-    return idx, theta, origin_local
+    return idx, theta, origin_local, span
 
 
 def measure_bga(cloud: PointCloud, nominal: BGANominal, *, min_height: float | None = None,
@@ -1138,9 +1146,13 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, min_height: float | N
                       for f, a in zip(fits, apex, strict=True)])
     T = _tangent_basis(nrm)
     pos = centre @ T.T
+    if nominal.rows is None:
+        # the grid is the span of the balls found
+        _, _, _, span = _register_grid(pos, pitch, None, None, None)
+        nominal = replace(nominal, rows=int(span[1]), cols=int(span[0]))
     populated = nominal.populated()
     rows, cols = int(nominal.rows), int(nominal.cols)
-    idx, theta, origin_local = _register_grid(pos, pitch, rows, cols, populated)
+    idx, theta, origin_local, _ = _register_grid(pos, pitch, rows, cols, populated)
     # keep one ball per grid position (the one with the most points), drop off-grid blobs
     order = sorted(range(len(fits)), key=lambda k: -fits[k].n_inliers)
     taken = np.full((rows, cols), -1, dtype=np.int64)

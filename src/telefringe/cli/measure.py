@@ -140,8 +140,8 @@ def sphere_cmd(
     _save_json(json_path, sphere_summary(f, base), force)
 
 
-def measure_bga_folder(out, *, rows: int, cols: int, pitch: float = 0.8,
-                       diameter: float = 0.45):
+def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,
+                       pitch: float = 0.8, diameter: float = 0.45):
     """Measure the BGA in ``out`` (BGAMeasurement). User problems raise InputError."""
     from ..metrology import BGANominal, measure_bga
 
@@ -156,8 +156,10 @@ def measure_bga_folder(out, *, rows: int, cols: int, pitch: float = 0.8,
 
 def bga_cmd(
     out: Path = typer.Argument(..., help="Reconstruction folder (points.npz)."),
-    rows: int = typer.Option(..., "--rows", help="Ball rows of the nominal grid."),
-    cols: int = typer.Option(..., "--cols", help="Ball columns of the nominal grid."),
+    rows: int = typer.Option(None, "--rows",
+                             help="Ball rows of the nominal grid (default: the rows the "
+                                  "balls found span; give it to find missing edge balls)."),
+    cols: int = typer.Option(None, "--cols", help="Ball columns of the nominal grid."),
     pitch: float = typer.Option(0.8, "--pitch", help="Nominal ball pitch (mm)."),
     diameter: float = typer.Option(0.45, "--diameter", help="Nominal ball diameter (mm)."),
     csv_path: Path = typer.Option(None, "--csv", help="Per-ball CSV (default OUT/bga.csv)."),
