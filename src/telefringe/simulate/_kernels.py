@@ -9,7 +9,8 @@ import numpy as np
 
 __all__ = ["accumulate_samples", "heightfield_eval", "heightfield_intersect", "camera_rays",
            "project_points", "shade", "interp_samples", "plate_intersect", "boxes_intersect",
-           "sphere_intersect", "bga_intersect", "plane_intersect"]
+           "sphere_intersect", "bga_intersect", "plane_intersect", "hit_points",
+           "accumulate_many", "sensor_counts"]
 
 
 @numba.njit(cache=True, parallel=True)
@@ -101,6 +102,8 @@ def heightfield_intersect(z, px, x0, y0, o, d):
     if not np.isfinite(step):
         return t_out, nrm
     for k in range(n):
+        if not (o[k, 0] == o[k, 0] and o[k, 1] == o[k, 1] and o[k, 2] == o[k, 2]):
+            continue
         # parameter range where the ray is within [zmin, zmax]
         if d[2] != 0.0:
             ta = (zmax - o[k, 2]) / d[2]
@@ -329,6 +332,8 @@ def plate_intersect(o, d, R, tw, rows, cols, pitch, radius, margin, albedo, mark
     y1 = (rows - 1) * pitch + margin
     r2max = radius * radius
     for i in numba.prange(n):
+        if not (o[i, 0] == o[i, 0]):
+            continue
         px = o[i, 0] - tw[0]
         py = o[i, 1] - tw[1]
         pz = o[i, 2] - tw[2]
@@ -366,6 +371,8 @@ def boxes_intersect(o, d, R, tw, blocks, base, albedo, base_albedo):
         dl[k] = R[0, k] * d[0] + R[1, k] * d[1] + R[2, k] * d[2]
     nb = blocks.shape[0]
     for i in numba.prange(n):
+        if not (o[i, 0] == o[i, 0]):
+            continue
         ol = np.empty(3)
         for k in range(3):
             ol[k] = (R[0, k] * (o[i, 0] - tw[0]) + R[1, k] * (o[i, 1] - tw[1])
@@ -445,6 +452,8 @@ def sphere_intersect(o, d, c, r, plane_z, half, albedo, plane_albedo):
     n = o.shape[0]
     t_out, nrm, alb, spec, part = _new_hits(n)
     for i in numba.prange(n):
+        if not (o[i, 0] == o[i, 0]):
+            continue
         best = np.inf
         if d[2] != 0.0:
             t = (plane_z - o[i, 2]) / d[2]
@@ -478,6 +487,8 @@ def bga_intersect(o, d, origin, pitch, centre_z, present, r, chip, reach, hmid,
     rows, cols = centre_z.shape
     t_out, nrm, alb, spec, part = _new_hits(n)
     for i in numba.prange(n):
+        if not (o[i, 0] == o[i, 0] and o[i, 1] == o[i, 1] and o[i, 2] == o[i, 2]):
+            continue
         best = np.inf
         if d[2] != 0.0:
             t = -o[i, 2] / d[2]
@@ -532,6 +543,8 @@ def plane_intersect(o, d, normal, point, albedo):
     if den == 0.0:
         return t_out, nrm, alb, spec, part
     for i in numba.prange(n):
+        if not (o[i, 0] == o[i, 0]):
+            continue
         t = ((point[0] - o[i, 0]) * normal[0] + (point[1] - o[i, 1]) * normal[1]
              + (point[2] - o[i, 2]) * normal[2]) / den
         if t > 0.0:
@@ -584,3 +597,21 @@ def accumulate_many(coord, weight, per_pixel, profiles, x_first, inv_step, out):
                 acc[k] += wa * profiles[k, i] + wb * profiles[k, i + 1]
         for k in range(nk):
             out[k, p] = acc[k]
+
+
+@numba.njit(cache=True, parallel=True)
+def hit_points(o, d, t, nrm, to_proj, start):
+    """Hit points P (N, 3) (NaN where no hit) and the origins of the shadow rays toward
+    the projector (``P + start * to_proj``; NaN where no hit or facing away)."""
+    n = o.shape[0]
+    P = np.full((n, 3), np.nan)
+    so = np.full((n, 3), np.nan)
+    for i in numba.prange(n):
+        if not np.isfinite(t[i]):
+            continue
+        for k in range(3):
+            P[i, k] = o[i, k] + t[i] * d[k]
+        if nrm[i, 0] * to_proj[0] + nrm[i, 1] * to_proj[1] + nrm[i, 2] * to_proj[2] > 0.0:
+            for k in range(3):
+                so[i, k] = P[i, k] + start * to_proj[k]
+    return P, so

@@ -289,17 +289,13 @@ def _trace(vrig: VirtualRig, scene, u: np.ndarray, v: np.ndarray) -> dict:
     d_cam = np.ascontiguousarray(cam.axis_world)
     hits = scene.intersect(o, d_cam)
     hit = hits.hit
-    P = np.where(hit[:, None], o + np.where(hit, hits.t, 0.0)[:, None] * d_cam, np.nan)
-    intr_p, R_p, t_p = _device_args(proj)
-    up, vp = _k.project_points(P, intr_p, R_p, t_p)
     d_proj = np.ascontiguousarray(proj.axis_world)
     to_proj = -d_proj
-    facing = hit & (hits.normal @ to_proj > 0)
-    unshadowed = np.zeros(len(u), dtype=bool)
-    idx = np.flatnonzero(facing)
-    if idx.size:
-        h2 = scene.intersect(P[idx] - _RAY_START_MM * d_proj, d_proj)
-        unshadowed[idx] = h2.t >= _RAY_START_MM - _SHADOW_EPS_MM
+    P, shadow_origin = _k.hit_points(o, d_cam, hits.t, hits.normal, to_proj, _RAY_START_MM)
+    intr_p, R_p, t_p = _device_args(proj)
+    up, vp = _k.project_points(P, intr_p, R_p, t_p)
+    # rays from the projector side toward each facing point: lit if nothing comes first
+    unshadowed = scene.intersect(shadow_origin, d_proj).t >= _RAY_START_MM - _SHADOW_EPS_MM
     h_vec = to_proj - d_cam
     h_vec = h_vec / np.linalg.norm(h_vec)
     W, H = proj.intrinsics.width, proj.intrinsics.height

@@ -4,8 +4,8 @@ Every scene is a frozen dataclass with
 
 - ``intersect(origins, direction) -> Hits``: first intersection of parallel rays
   (orthographic: ``origins`` (N, 3) mm, one unit ``direction`` (3,)) with the scene.
-  Rays must start outside the scene (the renderer starts them 200 mm away); only hits
-  with ``t > 0`` count.
+  Rays must start outside the scene (the renderer starts them 500 mm away); only hits
+  with ``t > 0`` count; a ray whose origin holds NaN hits nothing.
 - ``features() -> dict``: the scene's ground-truth features (JSON-friendly values or
   arrays): circle centres, step heights, sphere centre and radius, ball apexes, ...
 - ``z_range() -> (zmin, zmax)``: heights the surface spans (world mm).
@@ -76,8 +76,8 @@ class Hits:
 
 
 def _check_rays(origins, direction):
-    o = np.asarray(origins, dtype=float)
-    d = np.asarray(direction, dtype=float).reshape(-1)
+    o = np.ascontiguousarray(origins, dtype=float)
+    d = np.ascontiguousarray(direction, dtype=float).reshape(-1)
     if o.ndim != 2 or o.shape[1] != 3:
         raise ValueError(f"origins must have shape (N, 3), got {o.shape}")
     if d.shape != (3,) or not np.all(np.isfinite(d)) or abs(np.linalg.norm(d) - 1) > 1e-9:
