@@ -785,7 +785,9 @@ def height_map(cloud: PointCloud, *, pixel_mm: float | None = None,
     if cloud.count < 3:
         raise TriangulationError("the cloud has fewer than 3 valid points: no height map")
     if pixel_mm is None:
-        dx = np.linalg.norm(np.diff(xyz[:, :, :2], axis=1), axis=2)
+        # median spacing along the rows (from up to ~200 rows: a robust, cheap estimate)
+        sub = xyz[::max(1, xyz.shape[0] // 200), :, :2]
+        dx = np.linalg.norm(np.diff(sub, axis=1), axis=2)
         dx = dx[np.isfinite(dx)]
         if dx.size == 0:
             dx = np.linalg.norm(np.diff(xyz[:, :, :2], axis=0), axis=2)
@@ -796,9 +798,7 @@ def height_map(cloud: PointCloud, *, pixel_mm: float | None = None,
     pixel_mm = float(pixel_mm)
     if not (np.isfinite(pixel_mm) and pixel_mm > 0):
         raise TriangulationError(f"pixel_mm must be finite and > 0, got {pixel_mm!r}")
-    pts = xyz[mask]
-    xmin, ymin = pts[:, 0].min(), pts[:, 1].min()
-    xmax, ymax = pts[:, 0].max(), pts[:, 1].max()
+    xmin, xmax, ymin, ymax = _xy_bounds(xyz, mask)
     x0 = np.floor(xmin / pixel_mm) * pixel_mm
     y0 = np.ceil(ymax / pixel_mm) * pixel_mm
     W = int(np.ceil((xmax - x0) / pixel_mm)) + 1
@@ -809,8 +809,7 @@ def height_map(cloud: PointCloud, *, pixel_mm: float | None = None,
     sz = cloud.sigma_z
     zmap = np.full((H, W), -np.inf)
     smap = np.full((H, W), np.nan)
-    _raster_kernel(np.ascontiguousarray(xyz), np.ascontiguousarray(sz), float(x0), float(y0),
-                   pixel_mm, zmap, smap)
+    _raster_kernel(xyz, np.ascontiguousarray(sz), float(x0), float(y0), pixel_mm, zmap, smap)
     zmap[~np.isfinite(zmap)] = np.nan
     has_sigma = bool(np.any(np.isfinite(sz)))
     return HeightMap(zmap.astype(np.float32), float(x0), float(y0), pixel_mm,
@@ -818,31 +817,44 @@ def height_map(cloud: PointCloud, *, pixel_mm: float | None = None,
 
 
 @njit(cache=True, nogil=True)
-def _raster_tri(xa, ya, za, sa, xb, yb, zb, sb, xc, yc, zc, sc, x0, y0, p,
-                zmap, smap):  # pragma: no cover - numba
-    # grid coordinates: column j = (x - x0) / p, row i = (y0 - y) / p
-    ja = (xa - x0) / p
-    ia = (y0 - ya) / p
-    jb = (xb - x0) / p
-    ib = (y0 - yb) / p
-    jc = (xc - x0) / p
-    ic = (y0 - yc) / p
+def _xy_bounds(xyz, mask):  # pragma: no cover - numba
+    xmin = np.inf
+    xmax = -np.inf
+    ymin = np.inf
+    ymax = -np.inf
+    for r in range(mask.shape[0]):
+        for c in range(mask.shape[1]):
+            if mask[r, c]:
+                x = xyz[r, c, 0]
+                y = xyz[r, c, 1]
+                xmin = min(xmin, x)
+                xmax = max(xmax, x)
+                ymin = min(ymin, y)
+                ymax = max(ymax, y)
+    return xmin, xmax, ymin, ymax
+
+
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _raster_tri(ja, ia, za, sa, jb, ib, zb, sb, jc, ic, zc, sc, zmap,
+                smap):  # pragma: no cover - numba
+    # vertices in grid coordinates (column j, row i); fill the nodes inside
     det = (jb - ja) * (ic - ia) - (jc - ja) * (ib - ia)
-    if det == 0.0 or not np.isfinite(det):
+    if det == 0.0:
         return
     H, W = zmap.shape
     jlo = max(int(np.ceil(min(ja, jb, jc))), 0)
     jhi = min(int(np.floor(max(ja, jb, jc))), W - 1)
     ilo = max(int(np.ceil(min(ia, ib, ic))), 0)
     ihi = min(int(np.floor(max(ia, ib, ic))), H - 1)
-    eps = 1e-12
+    inv = 1.0 / det
+    eps = -1e-12
     for i in range(ilo, ihi + 1):
         for j in range(jlo, jhi + 1):
             # barycentric coordinates of node (i, j)
-            l1 = ((j - ja) * (ic - ia) - (jc - ja) * (i - ia)) / det
-            l2 = ((jb - ja) * (i - ia) - (j - ja) * (ib - ia)) / det
+            l1 = ((j - ja) * (ic - ia) - (jc - ja) * (i - ia)) * inv
+            l2 = ((jb - ja) * (i - ia) - (j - ja) * (ib - ia)) * inv
             l0 = 1.0 - l1 - l2
-            if l0 < -eps or l1 < -eps or l2 < -eps:
+            if l0 < eps or l1 < eps or l2 < eps:
                 continue
             z = l0 * za + l1 * zb + l2 * zc
             if z > zmap[i, j]:
@@ -850,10 +862,24 @@ def _raster_tri(xa, ya, za, sa, xb, yb, zb, sb, xc, yc, zc, sc, x0, y0, p,
                 smap[i, j] = l0 * sa + l1 * sb + l2 * sc
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _raster_kernel(xyz, sz, x0, y0, p, zmap, smap):  # pragma: no cover - numba
     rows, cols = xyz.shape[0], xyz.shape[1]
+    ip = 1.0 / p
+    # grid coordinates of one camera row, reused by the next row's quads
+    j0 = np.empty(cols)
+    i0 = np.empty(cols)
+    j1 = np.empty(cols)
+    i1 = np.empty(cols)
+    for c in range(cols):
+        j1[c] = (xyz[0, c, 0] - x0) * ip
+        i1[c] = (y0 - xyz[0, c, 1]) * ip
     for r in range(rows - 1):
+        for c in range(cols):
+            j0[c] = j1[c]
+            i0[c] = i1[c]
+            j1[c] = (xyz[r + 1, c, 0] - x0) * ip
+            i1[c] = (y0 - xyz[r + 1, c, 1]) * ip
         for c in range(cols - 1):
             z00 = xyz[r, c, 2]
             z01 = xyz[r, c + 1, 2]
@@ -862,14 +888,10 @@ def _raster_kernel(xyz, sz, x0, y0, p, zmap, smap):  # pragma: no cover - numba
             if not (np.isfinite(z00) and np.isfinite(z01) and np.isfinite(z10)
                     and np.isfinite(z11)):
                 continue
-            _raster_tri(xyz[r, c, 0], xyz[r, c, 1], z00, sz[r, c],
-                        xyz[r, c + 1, 0], xyz[r, c + 1, 1], z01, sz[r, c + 1],
-                        xyz[r + 1, c + 1, 0], xyz[r + 1, c + 1, 1], z11, sz[r + 1, c + 1],
-                        x0, y0, p, zmap, smap)
-            _raster_tri(xyz[r, c, 0], xyz[r, c, 1], z00, sz[r, c],
-                        xyz[r + 1, c + 1, 0], xyz[r + 1, c + 1, 1], z11, sz[r + 1, c + 1],
-                        xyz[r + 1, c, 0], xyz[r + 1, c, 1], z10, sz[r + 1, c],
-                        x0, y0, p, zmap, smap)
+            _raster_tri(j0[c], i0[c], z00, sz[r, c], j0[c + 1], i0[c + 1], z01,
+                        sz[r, c + 1], j1[c + 1], i1[c + 1], z11, sz[r + 1, c + 1], zmap, smap)
+            _raster_tri(j0[c], i0[c], z00, sz[r, c], j1[c + 1], i1[c + 1], z11,
+                        sz[r + 1, c + 1], j1[c], i1[c], z10, sz[r + 1, c], zmap, smap)
 
 
 # --------------------------------------------------------------------------------------
