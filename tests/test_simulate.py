@@ -304,6 +304,21 @@ def test_smooth_pixel_integration_error_is_bounded(fast):
     assert np.sqrt(np.mean(diff ** 2)) < 0.02
 
 
+def test_shiny_pixels_are_traced_not_interpolated(paper):
+    """Specular lobes vary too fast to interpolate: on the BGA the fast geometry must
+    give the exactly traced images (highlights included)."""
+    vr = crop_camera(paper, col0=543, row0=415, width=96, height=96)
+    bga = default_bga(0)
+    g_fast = trace_geometry(vr, bga)
+    g_exact = trace_geometry(vr, bga, exact=True)
+    W = vr.projector.intrinsics.width
+    levels = np.round(255 * (0.5 + 0.5 * np.cos(2 * np.pi * 64 * np.arange(W) / W)))
+    a = _integrate(g_fast, vr, "u", levels)
+    b = _integrate(g_exact, vr, "u", levels)
+    assert b.max() > 500                           # highlights are there
+    assert np.abs(a - b).max() < 0.05
+
+
 def test_dark_blobs_sit_where_the_model_projects_circle_centres(fast):
     """Darkness-weighted centroid of each marker (noise free) against project(centre),
     on a tilted plate. The rendering's own centroid error (7 x 7 integration of edge

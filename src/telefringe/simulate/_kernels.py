@@ -482,7 +482,8 @@ def bga_intersect(o, d, origin, pitch, centre_z, present, r, chip, reach, hmid,
                   substrate_albedo, board_albedo, ball_albedo, ball_specular):
     """BGA: substrate Z = 0 (chip rectangle ``chip`` = (x0, x1, y0, y1), board beyond)
     and spherical caps (centre heights ``centre_z`` (rows, cols), radius r, hidden
-    below Z = 0) at ``origin + (j, i) * pitch`` where ``present``."""
+    below Z = 0) at ``origin + (j, i) * pitch`` where ``present``. A ray can only meet
+    balls whose centre lies within ``reach`` mm (x-y) of its point at height ``hmid``."""
     n = o.shape[0]
     rows, cols = centre_z.shape
     t_out, nrm, alb, spec, part = _new_hits(n)
@@ -509,13 +510,14 @@ def bga_intersect(o, d, origin, pitch, centre_z, present, r, chip, reach, hmid,
             tm = 0.0
         xm = o[i, 0] + tm * d[0]
         ym = o[i, 1] + tm * d[1]
-        jc = int(np.round((xm - origin[0]) / pitch))
-        ic = int(np.round((ym - origin[1]) / pitch))
-        for ii in range(ic - reach, ic + reach + 1):
-            if ii < 0 or ii >= rows:
-                continue
-            for jj in range(jc - reach, jc + reach + 1):
-                if jj < 0 or jj >= cols or not present[ii, jj]:
+        # only balls whose centre is within ``reach`` (mm) of the mid-height point
+        j0 = max(0, int(math.ceil((xm - origin[0] - reach) / pitch)))
+        j1 = min(cols - 1, int(math.floor((xm - origin[0] + reach) / pitch)))
+        i0 = max(0, int(math.ceil((ym - origin[1] - reach) / pitch)))
+        i1 = min(rows - 1, int(math.floor((ym - origin[1] + reach) / pitch)))
+        for ii in range(i0, i1 + 1):
+            for jj in range(j0, j1 + 1):
+                if not present[ii, jj]:
                     continue
                 cx = origin[0] + jj * pitch
                 cy = origin[1] + ii * pitch

@@ -356,11 +356,14 @@ def _trace_centres(vrig, scene, rows, cols, pad):
 
 
 def _smooth_mask(c: dict) -> np.ndarray:
-    """(rows, cols) bool: the pixel and its 8 neighbours see one smooth surface patch
-    (same part, lit state and albedo, normals within 15 deg), away from the border."""
+    """(rows, cols) bool: the pixel and its 8 neighbours see one smooth matte surface
+    patch (same part, lit state and albedo, no specular, normals within 15 deg), away
+    from the border."""
     rows, cols = c["part"].shape
     ok = np.zeros((rows, cols), dtype=bool)
     ok[1:-1, 1:-1] = True
+    # a specular lobe varies too fast across a pixel to interpolate: trace shiny parts
+    ok &= c["specular"] == 0
     centre = (slice(1, rows - 1), slice(1, cols - 1))
     nrm = c["normal"]
     for dr in (-1, 0, 1):
@@ -381,11 +384,11 @@ def trace_geometry(vrig: VirtualRig, scene, *, exact: bool = False) -> Geometry:
     """Trace the camera's pixels into ``scene`` once: everything but the pattern.
 
     Pixel centres are traced exactly. Where a pixel and its 8 neighbours see one smooth
-    surface patch, the pixel integral uses the 2 x 2 Gauss-Legendre rule (exact for
+    matte surface patch, the pixel integral uses the 2 x 2 Gauss-Legendre rule (exact for
     cubics; ``photometry.smooth_gauss``) whose sub-samples take their projector
     coordinates and weights from the quadratic through the 9 centres (errors bounded by
-    tests); every other pixel (edges of markers, balls, shadows, walls, silhouettes, and
-    the image border) traces ``max(edge_supersample, supersample)``**2 midpoint
+    tests); every other pixel (edges of markers, balls, shadows, walls, silhouettes,
+    shiny surfaces, and the image border) traces ``max(edge_supersample, supersample)``**2 midpoint
     sub-samples exactly. ``exact=True`` traces every pixel that way.
     """
     ph = vrig.photometry

@@ -401,16 +401,18 @@ class BGA:
         o, d = _check_rays(origins, direction)
         r = self.radius
         hmax = float(np.max(self.ball_height + self.height_offsets))
-        # every ball a ray can meet is within reach of its point at mid-height
+        # every ball a ray can meet has its centre within reach (x-y) of the ray's point
+        # at mid-height: the cap's radius plus the ray's x-y travel over half the height
         half_span = 0.5 * hmax * np.hypot(d[0], d[1]) / max(abs(d[2]), 1e-12)
-        reach = int(np.ceil((r + half_span) / self.pitch + 0.5))
+        reach = 1.0001 * (r + half_span) + 1e-9
         chip = np.array([self.origin[0] - self.chip_margin,
                          self.origin[0] + (self.cols - 1) * self.pitch + self.chip_margin,
                          self.origin[1] - self.chip_margin,
                          self.origin[1] + (self.rows - 1) * self.pitch + self.chip_margin])
         centre_z = np.ascontiguousarray(self.centres_world()[..., 2])
         return Hits(*_k.bga_intersect(o, d, self.origin, float(self.pitch), centre_z,
-                                      self.present(), float(r), chip, reach, hmax / 2,
+                                      self.present(), float(r), chip, float(reach),
+                                      hmax / 2,
                                       float(self.substrate_albedo), float(self.board_albedo),
                                       float(self.ball_albedo), float(self.ball_specular)))
 
