@@ -236,6 +236,11 @@ def project_points(P, intr, R, t):
 
 @numba.njit(cache=True, nogil=True)
 def _phi(x):
+    """Standard normal CDF (exactly 0 or 1 in double precision beyond |x| = 9)."""
+    if x > 9.0:
+        return 1.0
+    if x < -9.0:
+        return 0.0
     return 0.5 * math.erfc(-x * 0.7071067811865476)
 
 
@@ -255,10 +260,11 @@ def shade(t, nrm, alb, spec, unshadowed, up, vp, to_proj, h_vec, spec_sigma, dn,
         cos_i = nrm[i, 0] * to_proj[0] + nrm[i, 1] * to_proj[1] + nrm[i, 2] * to_proj[2]
         if cos_i <= 0.0 or not unshadowed[i]:
             continue
-        ch = nrm[i, 0] * h_vec[0] + nrm[i, 1] * h_vec[1] + nrm[i, 2] * h_vec[2]
-        ang = math.acos(min(1.0, max(-1.0, ch)))
-        lobe = math.exp(-0.5 * (ang / spec_sigma) ** 2)
-        w = dn * (alb[i] * cos_i + spec[i] * lobe)
+        w = dn * alb[i] * cos_i
+        if spec[i] != 0.0:
+            ch = nrm[i, 0] * h_vec[0] + nrm[i, 1] * h_vec[1] + nrm[i, 2] * h_vec[2]
+            ang = math.acos(min(1.0, max(-1.0, ch)))
+            w += dn * spec[i] * math.exp(-0.5 * (ang / spec_sigma) ** 2)
         if sigma_p > 0.0:
             eu = _phi((up[i] + 0.5) / sigma_p) - _phi((up[i] - W + 0.5) / sigma_p)
             ev = _phi((vp[i] + 0.5) / sigma_p) - _phi((vp[i] - H + 0.5) / sigma_p)
