@@ -10,6 +10,7 @@ import pytest
 
 from telefringe.io.errors import InputError
 from telefringe.io.export import (
+    load_points,
     read_height_tiff,
     read_points,
     to_jsonable,
@@ -57,6 +58,11 @@ def test_points_round_trip(tmp_path):
     write_points(p, cloud, force=True)
     with pytest.raises(ValueError, match="texture"):
         write_points(tmp_path / "x.npz", cloud, texture=tex[:-1])
+    rad = 3.0 * tex
+    write_points(tmp_path / "r.npz", cloud, radiance=rad)
+    pf = load_points(tmp_path / "r.npz")
+    assert pf.texture is None and np.array_equal(pf.radiance, rad)
+    assert np.array_equal(pf.cloud.xyz, cloud.xyz, equal_nan=True)
 
 
 def test_read_points_refuses_bad_files(tmp_path):

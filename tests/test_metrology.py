@@ -372,6 +372,38 @@ def test_bga_balls_heights_pitch_missing():
     assert len(cop.contacts) >= 3
 
 
+def test_bga_centres_from_highlights():
+    cloud, present, offs, apex = bga_cloud(sigma=0.004, seed=3)
+    # an image with one specular spot per ball, at the same offset from every centre
+    x, y = cloud.x, cloud.y
+    xs, ys = np.nan_to_num(x), np.nan_to_num(y)
+    img = np.full(cloud.shape, 10.0)
+    for a in apex[present]:
+        img += 200.0 * np.exp(-((xs - a[0] - 0.04) ** 2 + (ys - a[1] + 0.03) ** 2)
+                              / (2 * 0.025**2))
+    img += np.random.default_rng(4).normal(0, 0.5, img.shape)
+    nom = BGANominal(rows=6, cols=7, pitch_mm=0.8, ball_diameter_mm=0.45)
+    m0 = measure_bga(cloud, nom)
+    m1 = measure_bga(cloud, nom, image=img)
+    assert m1.refined.all() and not m0.refined.any()
+    assert np.array_equal(m0.index, m1.index)
+    true_xy = apex[present][:, :2]
+
+    def spread(m):
+        e = m.centre[:, :2] - true_xy
+        return (e - e.mean(axis=0)).std(axis=0)
+
+    # relative positions: the highlight beats the noisy cap fit several times over and
+    # agrees with its own uncertainty
+    assert np.all(spread(m1) < spread(m0) / 3)
+    assert np.all(spread(m1) < 3 * np.median(m1.sigma_centre[:, :2], axis=0))
+    assert m1.pitch_error_max < m0.pitch_error_max
+    # heights do not change
+    assert np.allclose(m1.height, m0.height, atol=1e-6)
+    with pytest.raises(MetrologyError, match="shape"):
+        measure_bga(cloud, nom, image=img[:-1])
+
+
 def test_bga_grid_from_the_balls():
     cloud, present, offs, apex = bga_cloud(missing=((2, 3),))
     m = measure_bga(cloud, BGANominal(rows=None, cols=None, pitch_mm=0.8,

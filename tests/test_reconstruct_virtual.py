@@ -25,7 +25,7 @@ from telefringe.metrology import (  # noqa: E402
     measure_steps,
 )
 from telefringe.model import Rig, TelecentricDevice  # noqa: E402
-from telefringe.reconstruct import triangulate  # noqa: E402
+from telefringe.reconstruct import radiance_image, triangulate  # noqa: E402
 from telefringe.simulate import scenes  # noqa: E402
 from telefringe.simulate.presets import HDR_EXPOSURES, get_preset  # noqa: E402
 from telefringe.targets import detect_circle_grid, fringe_free_image  # noqa: E402
@@ -33,11 +33,12 @@ from telefringe.targets import detect_circle_grid, fringe_free_image  # noqa: E4
 K = 4.0
 
 
-def _run(vrig, scene, *, seed=1, exposures=(1.0,)):
+def _run(vrig, scene, *, seed=1, exposures=(1.0,), with_coords=False):
     scan, truth = sim.render_scan(vrig, scene, sim.default_groups(vrig), seed=seed,
                                   exposures=exposures)
     coords = decode(scan)
-    return scan, truth, triangulate(vrig.rig, coords)
+    cloud = triangulate(vrig.rig, coords)
+    return (scan, truth, cloud, coords) if with_coords else (scan, truth, cloud)
 
 
 @pytest.fixture(scope="module")
@@ -131,9 +132,12 @@ def test_bga_on_the_paper_rig():
     vr_roi = replace(vr, name="paper-window",
                      rig=Rig(TelecentricDevice(roi, cam.R_dev_world, cam.t_dev),
                              vr.rig.projector))
-    scan, truth, cloud = _run(vr_roi, bga, seed=3, exposures=HDR_EXPOSURES)
+    scan, truth, cloud, coords = _run(vr_roi, bga, seed=3, exposures=HDR_EXPOSURES,
+                                      with_coords=True)
     f = truth.features
-    m = measure_bga(cloud, BGANominal(rows=6, cols=6, pitch_mm=0.8, ball_diameter_mm=0.45))
+    nominal = BGANominal(rows=6, cols=6, pitch_mm=0.8, ball_diameter_mm=0.45)
+    m = measure_bga(cloud, nominal, image=radiance_image(coords))
+    assert m.refined.all()
     assert sorted(m.missing) == sorted(tuple(x) for x in f["missing"])
     assert m.n_balls == len(f["ball_index"]) and m.unexpected == ()
     true_h = {tuple(i): a[2] for i, a in zip(f["ball_index"], f["apexes_world"], strict=True)}
@@ -142,13 +146,18 @@ def test_bga_on_the_paper_rig():
     # apex heights: noise-limited (measured: normalised RMS 1.0, RMS 2.3 um)
     assert np.sqrt(np.mean((e / m.sigma_height) ** 2)) < 1.5
     assert np.sqrt(np.mean(e**2)) < 3e-3
-    # pitch: the centres' noise (~2.5 um per coordinate) limits it
+    # pitch: from the specular highlights (measured RMS 0.56 um, largest 1.6 um over 53
+    # pairs; from the cap fits alone 3.4 um and 8 um)
     cw = {tuple(i): c for i, c in zip(f["ball_index"], f["centres_world"], strict=True)}
     grid = np.full((6, 6, 2), np.nan)
     for (i, j), c in cw.items():
         grid[i, j] = c[:2]
-    true_px = np.linalg.norm(np.diff(grid, axis=1), axis=2)
-    ok = np.isfinite(m.pitch_x) & np.isfinite(true_px)
-    pe = m.pitch_x[ok] - true_px[ok]
-    assert np.sqrt(np.mean(pe**2)) < 6e-3
+    pe = []
+    for axis, meas in ((1, m.pitch_x), (0, m.pitch_y)):
+        true_p = np.linalg.norm(np.diff(grid, axis=axis), axis=2)
+        ok = np.isfinite(meas) & np.isfinite(true_p)
+        pe.append(meas[ok] - true_p[ok])
+    pe = np.concatenate(pe)
+    assert pe.size > 40
+    assert np.sqrt(np.mean(pe**2)) < 1.2e-3
     assert m.coplanarity.value > 0

@@ -50,6 +50,7 @@ __all__ = [
     "height_map",
     "Reconstruction",
     "reconstruct_scan",
+    "radiance_image",
     "FLAG_NO_PHASE",
     "FLAG_INCONSISTENT",
     "FLAG_OUTSIDE",
@@ -908,12 +909,40 @@ class Reconstruction:
     height : HeightMap or None
     texture : (rows, cols) ndarray of float32, the fringe-free camera image (white frame
         or mean of a phase group), for marker detection and display.
+    radiance : (rows, cols) ndarray of float32 or None, the decoder's background A
+        divided by the exposure it came from (HDR: unsaturated where one exposure was),
+        in DN at exposure 1; for locating specular highlights (BGA).
     """
 
     coords: object
     cloud: PointCloud
     height: HeightMap | None
     texture: np.ndarray
+    radiance: np.ndarray | None = None
+
+
+def radiance_image(coords) -> np.ndarray | None:
+    """The decoder's background divided by its per-pixel exposure (float32), or None.
+
+    ``coords`` is a :class:`telefringe.decode.ProjectorCoordinates`; the finest group of
+    the u axis (else v) is used, as the decoder's own ``background``.
+    """
+    axes = getattr(coords, "axes", None) or {}
+    for name in ("u", "v"):
+        ax = axes.get(name)
+        if ax is None:
+            continue
+        bg = getattr(ax, "background", None)
+        ex = getattr(ax, "exposure", None)
+        if bg is None:
+            continue
+        bg = np.asarray(bg, dtype=np.float64)
+        ex = np.ones_like(bg) if ex is None else np.asarray(ex, dtype=np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.where(ex > 0, bg / ex, np.nan)
+        return r.astype(np.float32)
+    bg = getattr(coords, "background", None)
+    return None if bg is None else np.asarray(bg, dtype=np.float32)
 
 
 def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
@@ -960,4 +989,4 @@ def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
     if with_height_map and cloud.count >= 3:
         hm = height_map(cloud, pixel_mm=pixel_mm)
     texture = np.asarray(fringe_free_image(scan), dtype=np.float32)
-    return Reconstruction(coords, cloud, hm, texture)
+    return Reconstruction(coords, cloud, hm, texture, radiance_image(coords))

@@ -143,13 +143,15 @@ def sphere_cmd(
 def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,
                        pitch: float = 0.8, diameter: float = 0.45):
     """Measure the BGA in ``out`` (BGAMeasurement). User problems raise InputError."""
+    from ..io.export import load_points
     from ..metrology import BGANominal, measure_bga
 
     out = Path(out)
-    cloud, _ = _load(out)
+    pf = load_points(out)
     try:
         nominal = BGANominal(rows=rows, cols=cols, pitch_mm=pitch, ball_diameter_mm=diameter)
-        return measure_bga(cloud, nominal)
+        # the radiance image locates each ball by its specular highlight (better pitch)
+        return measure_bga(pf.cloud, nominal, image=pf.radiance)
     except _metrology_errors() as exc:
         _fail(out, exc)
 

@@ -67,7 +67,8 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
         summary["heightmap"] = {"pixel_mm": rec.height.pixel_mm,
                                 "shape": list(rec.height.z.shape)}
     with progress_bar("writing", 1) as advance, atomic_dir(output, force=force) as tmp:
-        write_reconstruction(tmp, rec.cloud, rec.height, texture=rec.texture, ply=ply,
+        write_reconstruction(tmp, rec.cloud, rec.height, texture=rec.texture,
+                             radiance=rec.radiance, ply=ply,
                              title=title or Path(scan_dir).name)
         write_json(Path(tmp) / "summary.json", summary)
         advance()

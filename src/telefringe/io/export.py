@@ -30,6 +30,8 @@ __all__ = [
     "HEIGHTMAP_FORMAT",
     "write_points",
     "read_points",
+    "load_points",
+    "PointsFile",
     "write_ply",
     "write_height_tiff",
     "read_height_tiff",
@@ -92,7 +94,7 @@ def write_json(path, obj, *, force: bool = True) -> Path:
 # --------------------------------------------------------------------------------------
 # points.npz
 # --------------------------------------------------------------------------------------
-def write_points(path, cloud, *, texture=None, force: bool = False) -> Path:
+def write_points(path, cloud, *, texture=None, radiance=None, force: bool = False) -> Path:
     """Write an organised point cloud to ``path`` (uncompressed .npz).
 
     Arrays: ``xyz`` (rows, cols, 3) float64 mm, NaN where invalid; ``mask`` bool;
@@ -100,7 +102,9 @@ def write_points(path, cloud, *, texture=None, force: bool = False) -> Path:
     ``direction`` (3,) the camera's viewing direction; ``flags`` uint8 (why a point is
     invalid, ``telefringe.reconstruct.FLAG_*``); ``residual`` float64 projector px (only
     with both fringe axes); ``texture`` float32 (rows, cols) fringe-free camera image
-    (optional, for marker detection); ``format`` and ``version``.
+    (optional, for marker detection); ``radiance`` float32 (rows, cols) the decoder's
+    background per unit exposure (optional, for BGA highlights); ``format`` and
+    ``version``.
     """
     arrays = {
         "format": np.array(POINTS_FORMAT),
@@ -114,15 +118,25 @@ def write_points(path, cloud, *, texture=None, force: bool = False) -> Path:
     }
     if cloud.residual is not None:
         arrays["residual"] = np.asarray(cloud.residual, dtype=np.float64)
-    if texture is not None:
-        t = np.asarray(texture, dtype=np.float32)
-        if t.shape != cloud.shape:
-            raise ValueError(f"texture has shape {t.shape}, the cloud {cloud.shape}")
-        arrays["texture"] = t
+    for name, img in (("texture", texture), ("radiance", radiance)):
+        if img is not None:
+            t = np.asarray(img, dtype=np.float32)
+            if t.shape != cloud.shape:
+                raise ValueError(f"{name} has shape {t.shape}, the cloud {cloud.shape}")
+            arrays[name] = t
     path = Path(path)
     with atomic_file(path, force=force) as tmp, open(tmp, "wb") as f:
         np.savez(f, **arrays)
     return path
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PointsFile:
+    """Content of ``points.npz``: the cloud and its optional images (float32 or None)."""
+
+    cloud: object
+    texture: np.ndarray | None
+    radiance: np.ndarray | None
 
 
 def read_points(path):
@@ -138,6 +152,12 @@ def read_points(path):
     InputError
         Missing file, not a points file, inconsistent arrays.
     """
+    pf = load_points(path)
+    return pf.cloud, pf.texture
+
+
+def load_points(path) -> PointsFile:
+    """Like :func:`read_points`, with every optional array (:class:`PointsFile`)."""
     from ..reconstruct import PointCloud
 
     path = Path(path)
@@ -162,7 +182,7 @@ def read_points(path):
     if xyz.ndim != 3 or xyz.shape[2] != 3 or xyz.dtype.kind != "f":
         raise InputError(f"{path}: 'xyz' must be a float (rows, cols, 3) array")
     shape = xyz.shape[:2]
-    for k in ("mask", "sigma_line", "flags", "residual", "texture"):
+    for k in ("mask", "sigma_line", "flags", "residual", "texture", "radiance"):
         if k in arrays and arrays[k].shape != shape:
             raise InputError(f"{path}: '{k}' has shape {arrays[k].shape}, expected {shape}")
     d = np.asarray(arrays["direction"], dtype=np.float64)
@@ -174,7 +194,7 @@ def read_points(path):
     xyz = np.where(mask[..., None], xyz, np.nan).astype(np.float64)
     cloud = PointCloud(xyz, mask, np.where(mask, arrays["sigma_line"], np.nan),
                        arrays.get("residual"), arrays["flags"].astype(np.uint8), d)
-    return cloud, arrays.get("texture")
+    return PointsFile(cloud, arrays.get("texture"), arrays.get("radiance"))
 
 
 # --------------------------------------------------------------------------------------
@@ -423,8 +443,9 @@ def write_bga_png(path, m, *, title: str | None = None, force: bool = False) -> 
 # --------------------------------------------------------------------------------------
 # Everything a reconstruction leaves
 # --------------------------------------------------------------------------------------
-def write_reconstruction(folder, cloud, hm=None, *, texture=None, title: str | None = None,
-                         ply: bool = True, force: bool = False) -> dict:
+def write_reconstruction(folder, cloud, hm=None, *, texture=None, radiance=None,
+                         title: str | None = None, ply: bool = True,
+                         force: bool = False) -> dict:
     """Write ``points.npz``, ``cloud.ply``, ``heightmap.tif`` (+ ``.json``, ``_sigma.tif``)
     and ``heightmap.png`` into an existing ``folder``.
 
@@ -433,7 +454,8 @@ def write_reconstruction(folder, cloud, hm=None, *, texture=None, title: str | N
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"{folder}: not a folder")
-    out = {"points": write_points(folder / "points.npz", cloud, texture=texture, force=force)}
+    out = {"points": write_points(folder / "points.npz", cloud, texture=texture,
+                                  radiance=radiance, force=force)}
     if ply:
         out["ply"] = write_ply(folder / "cloud.ply", cloud, texture=texture, force=force)
     if hm is not None:
