@@ -407,12 +407,16 @@ def write_bga_png(path, m, *, title: str | None = None, force: bool = False) -> 
     """A map of the balls on the grid, coloured by apex height (mm); missing balls are
     red crosses, the seating-plane contacts are circled."""
     rows, cols = m.nominal.rows, m.nominal.cols
-    fig = _figure((7.5, max(3.0, 7.0 * rows / max(cols, 1)) + 0.8))
+    width_in = 7.5
+    plot_in = 5.6  # about the axes' width
+    fig = _figure((width_in, max(3.0, plot_in * (rows + 1) / (cols + 1)) + 1.6))
     ax = fig.add_subplot(1, 1, 1)
     pitch = m.nominal.pitch_mm
     x = m.index[:, 1] * pitch
     y = m.index[:, 0] * pitch
-    size = (72.0 * 6.0 / max(rows, cols)) ** 2
+    # marker diameter: the nominal ball diameter at the plot's scale (points)
+    pt_per_mm = plot_in * 72.0 / ((cols + 1) * pitch)
+    size = (min(m.nominal.ball_diameter_mm, 0.9 * pitch) * pt_per_mm) ** 2
     sc = ax.scatter(x, y, c=m.height, cmap="viridis", s=size, marker="o", edgecolors="none")
     if len(m.coplanarity.contacts):
         k = m.coplanarity.contacts
@@ -432,7 +436,8 @@ def write_bga_png(path, m, *, title: str | None = None, force: bool = False) -> 
     cb = fig.colorbar(sc, ax=ax, shrink=0.9)
     cb.set_label("apex height above substrate (mm)")
     if len(m.coplanarity.contacts) or m.missing:
-        ax.legend(loc="upper right", fontsize="small", framealpha=0.8)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2,
+                  fontsize="small", frameon=False, markerscale=0.5)
     fig.tight_layout()
     path = Path(path)
     with atomic_file(path, force=force) as tmp:
