@@ -13,7 +13,7 @@ __all__ = ["accumulate_samples", "heightfield_eval", "heightfield_intersect", "c
            "accumulate_many", "sensor_counts"]
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def accumulate_samples(coord, weight, per_pixel, profile, x_first, inv_step, out):
     """Sum the samples of each pixel: ``out[p] = sum_s weight * profile(coord)``.
 
@@ -196,7 +196,7 @@ def _undistort_one(xd, yd, k1, s1, s2):
     return xu, yu, ok
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def camera_rays(u, v, intr, R, t, start):
     """Orthographic camera rays through pixels (u, v) (N,).
 
@@ -218,7 +218,7 @@ def camera_rays(u, v, intr, R, t, start):
     return o, ok
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def project_points(P, intr, R, t):
     """Project world points P (N, 3) with a device (same formula as model.project)."""
     n = P.shape[0]
@@ -244,7 +244,7 @@ def _phi(x):
     return 0.5 * math.erfc(-x * 0.7071067811865476)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def shade(t, nrm, alb, spec, unshadowed, up, vp, to_proj, h_vec, spec_sigma, dn, ambient,
           W, H, sigma_p):
     """Per-sample weights of the pattern (see render._trace). Returns wu, wv, amb, lit."""
@@ -277,7 +277,7 @@ def shade(t, nrm, alb, spec, unshadowed, up, vp, to_proj, h_vec, spec_sigma, dn,
     return wu, wv, amb, lit
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def interp_samples(f, offsets, scale, out):
     """Quadratic interpolation of a per-pixel field at sub-pixel offsets.
 
@@ -324,7 +324,7 @@ def _set_normal(nrm, i, nx, ny, nz, d):
     nrm[i, 2] = nz
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def plate_intersect(o, d, R, tw, rows, cols, pitch, radius, margin, albedo, marker_albedo):
     """Circle plate: the plane Z = 0 of the target frame (R world<-target, origin tw)."""
     n = o.shape[0]
@@ -367,7 +367,7 @@ def plate_intersect(o, d, R, tw, rows, cols, pitch, radius, margin, albedo, mark
     return t_out, nrm, alb, spec, part
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def boxes_intersect(o, d, R, tw, blocks, base, albedo, base_albedo):
     """Step gauge: base rectangle at Z = 0 plus axis-aligned blocks, in the scene frame."""
     n = o.shape[0]
@@ -452,7 +452,7 @@ def _sphere_t(ox, oy, oz, d, cx, cy, cz, r):
     return tc - math.sqrt(disc)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def sphere_intersect(o, d, c, r, plane_z, half, albedo, plane_albedo):
     """A sphere (hidden below Z = plane_z) on a square plane of half size ``half``."""
     n = o.shape[0]
@@ -483,7 +483,7 @@ def sphere_intersect(o, d, c, r, plane_z, half, albedo, plane_albedo):
     return t_out, nrm, alb, spec, part
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def bga_intersect(o, d, origin, pitch, centre_z, present, r, chip, reach, hmid,
                   substrate_albedo, board_albedo, ball_albedo, ball_specular):
     """BGA: substrate Z = 0 (chip rectangle ``chip`` = (x0, x1, y0, y1), board beyond)
@@ -542,7 +542,7 @@ def bga_intersect(o, d, origin, pitch, centre_z, present, r, chip, reach, hmid,
     return t_out, nrm, alb, spec, part
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def plane_intersect(o, d, normal, point, albedo):
     """An infinite plane through ``point`` with unit ``normal``."""
     n = o.shape[0]
@@ -563,7 +563,7 @@ def plane_intersect(o, d, normal, point, albedo):
     return t_out, nrm, alb, spec, part
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def sensor_counts(signal_e, normal, read_e, dn_per_e, full_scale, out):
     """Shot + read noise (Gaussian approximation), quantisation and saturation.
 
@@ -607,7 +607,7 @@ def accumulate_many(coord, weight, per_pixel, profiles, x_first, inv_step, out):
             out[k, p] = acc[k]
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def hit_points(o, d, t, nrm, to_proj, start):
     """Hit points P (N, 3) (NaN where no hit) and the origins of the shadow rays toward
     the projector (``P + start * to_proj``; NaN where no hit or facing away)."""
