@@ -40,6 +40,7 @@ __all__ = [
     "tilted_plane",
     "SCENE_NAMES",
     "make_scene",
+    "rotation_xyz_deg",
 ]
 
 
@@ -225,7 +226,7 @@ class StepGauge:
     """
 
     blocks: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
-    base: tuple[float, float, float, float] = (-5.0, 35.0, -5.0, 29.0)
+    base: tuple[float, float, float, float] = (-10.0, 40.0, -8.0, 32.0)
     R_world_scene: np.ndarray = field(default_factory=lambda: np.eye(3))
     t_world_scene: np.ndarray = field(default_factory=lambda: np.zeros(3))
     albedo: float = 0.75
@@ -571,7 +572,7 @@ def make_scene(name: str, *, z: float = 0.0, seed: int = 0):
 
     ``plate``: the calibration plate at Z = z; ``steps``: :func:`default_steps`;
     ``sphere``: :func:`default_sphere`; ``bga``: :func:`default_bga` (``seed``);
-    ``tilted-plane``: :func:`tilted_plane`.
+    ``tilted-plane``: :func:`tilted_plane` tilted by 6 deg (+-2 mm over the field).
     """
     if name == "plate":
         return plate_at_z(z)
@@ -587,12 +588,12 @@ def make_scene(name: str, *, z: float = 0.0, seed: int = 0):
             raise ValueError("the BGA scene sits at Z = 0 (no --z)")
         return b
     if name == "tilted-plane":
-        return tilted_plane(z0=z)
+        return tilted_plane(6.0, z0=z)
     raise ValueError(f"unknown scene {name!r}; known: {', '.join(SCENE_NAMES)}")
 
 
 def rotation_xyz_deg(rx: float, ry: float, rz: float) -> np.ndarray:
-    """Rotation about z, then y, then x... composed as Rz @ Ry @ Rx (degrees)."""
+    """``Rz(rz) @ Ry(ry) @ Rx(rx)`` (degrees): a vector turns about x first, then y, then z."""
     return (rotation_from_rotvec([0, 0, np.radians(rz)])
             @ rotation_from_rotvec([0, np.radians(ry), 0])
             @ rotation_from_rotvec([np.radians(rx), 0, 0]))
