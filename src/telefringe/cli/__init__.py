@@ -44,6 +44,17 @@ def _register_all():
 
     for mod in (simulate, decode, calibrate, reconstruct, measure, paper):
         mod.register(app)
+    # one-line summaries in `telefringe --help`: the first paragraph of each docstring,
+    # its hard line breaks joined
+    for cmd in app.registered_commands:
+        doc = cmd.help or (cmd.callback.__doc__ if cmd.callback else None)
+        if cmd.short_help is None and doc:
+            cmd.short_help = " ".join(doc.strip().split("\n\n")[0].split())
+    for grp in app.registered_groups:
+        info = grp.typer_instance.info if grp.typer_instance else None
+        doc = grp.help or (info.help if info else None)
+        if grp.short_help is None and isinstance(doc, str):
+            grp.short_help = " ".join(doc.strip().split("\n\n")[0].split())
 
 
 _register_all()
