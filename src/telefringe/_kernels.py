@@ -58,12 +58,12 @@ def _features(phase, harmonics, scale, out, start):
 
 
 @nb.njit(cache=True, nogil=True)
-def pair_normal_equations(phase_a, phase_b, ratio, harm_a, harm_b, off_a, off_b, target,
-                          weight, ata, atb):
-    """Accumulate the weighted normal equations of ``target = ratio e_a(phase_a) -
-    e_b(phase_b)`` (harmonic models, sorted harmonics) into ``ata`` and ``atb``.
-
-    Samples with weight <= 0 are skipped.
+def pair_normal_equations(phase_a, phase_b, scale_a, scale_b, harm_a, harm_b, off_a, off_b,
+                          target, weight, ata, atb):
+    """Accumulate weighted normal equations ``ata += J^T W J``, ``atb += J^T W target`` for
+    rows ``J = [scale_a h_a(phase_a), scale_b h_b(phase_b)]``, h the (cos, sin) harmonics
+    (sorted orders) placed at parameter offsets off_a, off_b. Per-sample scales and
+    weights; samples with weight <= 0 are skipped.
     """
     na = 2 * harm_a.size
     nbb = 2 * harm_b.size
@@ -75,8 +75,8 @@ def pair_normal_equations(phase_a, phase_b, ratio, harm_a, harm_b, off_a, off_b,
         w = weight[i]
         if w <= 0.0:
             continue
-        _features(phase_a[i], harm_a, ratio, f, 0)
-        _features(phase_b[i], harm_b, -1.0, f, na)
+        _features(phase_a[i], harm_a, scale_a[i], f, 0)
+        _features(phase_b[i], harm_b, scale_b[i], f, na)
         t = target[i]
         for p in range(nf):
             fp = f[p] * w
@@ -91,3 +91,25 @@ def pair_normal_equations(phase_a, phase_b, ratio, harm_a, harm_b, off_a, off_b,
             ata[ip, iq] += loc[p, q]
             if iq != ip:
                 ata[iq, ip] += loc[p, q]
+
+
+@nb.njit(cache=True, nogil=True)
+def table_correct(phase, table, out):
+    """out = wrap(phase - g(phase)), g linearly interpolated from ``table`` sampled at
+    -pi + 2 pi j / M (periodic). 1-D float64 arrays; result in (-pi, pi]."""
+    m = table.size
+    scale = m / TWO_PI
+    for i in range(phase.size):
+        p = phase[i]
+        t = (p + math.pi) * scale
+        j = int(math.floor(t))
+        f = t - j
+        j0 = j % m
+        j1 = (j0 + 1) % m
+        g = table[j0] * (1.0 - f) + table[j1] * f
+        q = p - g
+        if q > math.pi:
+            q -= TWO_PI
+        elif q <= -math.pi:
+            q += TWO_PI
+        out[i] = q

@@ -356,7 +356,7 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
             learn = good
         fit = fit_phase_errors(phases, per, steps=[lv.steps for lv in levels], mask=learn,
                                sigmas=sigmas, absolute=absolute)
-        sigmas = [s * np.abs(1.0 - m.slope(p))
+        sigmas = [s * np.abs(m.noise_factor(p))
                   for m, p, s in zip(fit.models, phases, sigmas, strict=True)]
         phases = [m.correct(p) for m, p in zip(fit.models, phases, strict=True)]
     elif len(levels) >= 2 or gamma_correction:

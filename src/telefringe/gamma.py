@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -53,13 +54,23 @@ TWO_PI = 2.0 * np.pi
 
 @dataclass(frozen=True)
 class PhaseErrorModel:
-    """A periodic phase error ``e(phi') = sum_m a_m cos(m phi') + b_m sin(m phi')`` (rad).
+    """A periodic phase error as a function of the true wrapped phase phi (rad)::
+
+        measured = phi + e(phi),   e(phi) = sum_m a_m cos(m phi) + b_m sin(m phi)
+
+    (the forward form: gamma errors have a short harmonic series in the true phase; as a
+    function of the measured phase the series is much longer).
 
     Attributes
     ----------
     periods : int, the fringe group it belongs to.
     harmonics : tuple of int, orders m >= 1.
     cos_coef, sin_coef : (n_harmonics,) ndarray of float64, rad.
+
+    :meth:`correct` inverts the mapping with a table of the correction ``e(phi)`` against
+    the measured phase (solved by Newton's method on a regular grid), linearly
+    interpolated; the grid is refined until the interpolation error, checked against the
+    exact inverse at every mid-point, is below 1e-8 rad (:attr:`table_error`).
     """
 
     periods: int
@@ -73,7 +84,7 @@ class PhaseErrorModel:
         return cls(int(periods), (), np.zeros(0), np.zeros(0))
 
     def error(self, phase) -> np.ndarray:
-        """The error e(phi') (rad) at measured wrapped phase(s) phi' (rad), any shape."""
+        """The error e(phi) (rad) at true wrapped phase(s) phi (rad), any shape."""
         phase = np.asarray(phase, dtype=np.float64)
         out = np.zeros(phase.shape)
         if self.harmonics:
@@ -84,22 +95,69 @@ class PhaseErrorModel:
         return out
 
     def slope(self, phase) -> np.ndarray:
-        """de/dphi' at measured phase(s) phi' (the corrected phase's noise is
-        ``|1 - slope|`` times the measured phase's)."""
+        """de/dphi at true phase(s) phi. The corrected phase's noise is
+        ``1 / (1 + slope)`` times the measured phase's."""
         m = np.asarray(self.harmonics, dtype=float)
         deriv = PhaseErrorModel(self.periods, self.harmonics, m * self.sin_coef,
                                 -m * self.cos_coef)
         return deriv.error(phase)
 
+    def _invert(self, measured: np.ndarray) -> np.ndarray:
+        """True phase (unwrapped near ``measured``) solving phi + e(phi) = measured."""
+        phi = measured - self.error(measured)
+        for _ in range(60):
+            d = 1.0 + self.slope(phi)
+            if np.any(d <= 0.0):
+                raise ValueError("phase error model is not invertible (slope <= -1)")
+            step = (phi + self.error(phi) - measured) / d
+            phi = phi - step
+            if np.max(np.abs(step)) < 1e-14:
+                break
+        return phi
+
+    @cached_property
+    def _table(self) -> tuple[np.ndarray, float]:
+        if not self.harmonics:
+            return np.zeros(1), 0.0
+        n = 4096
+        while True:
+            grid = -np.pi + TWO_PI * np.arange(n) / n
+            g = grid - self._invert(grid)
+            mid = grid + np.pi / n
+            gm = mid - self._invert(mid)
+            interp = 0.5 * (g + np.roll(g, -1))
+            err = float(np.max(np.abs(interp - gm)))
+            if err <= 1e-8 or n >= 2 ** 20:
+                return g, err
+            n *= 4
+
+    @property
+    def invertible(self) -> bool:
+        """The measured phase is a monotonic function of the true phase (1 + e' > 0)."""
+        if not self.harmonics:
+            return True
+        grid = np.linspace(-np.pi, np.pi, 64 * max(self.harmonics), endpoint=False)
+        return bool(np.all(1.0 + self.slope(grid) > 0.0))
+
+    @property
+    def table_error(self) -> float:
+        """Largest interpolation error of the inverse table (rad), checked at mid-points."""
+        return self._table[1]
+
     def correct(self, phase) -> np.ndarray:
-        """Corrected wrapped phase ``wrap(phi' - e(phi'))`` in (-pi, pi]."""
+        """True wrapped phase (in (-pi, pi]) of measured wrapped phase(s), any shape."""
         phase = np.asarray(phase, dtype=np.float64)
         if not self.harmonics:
             return phase.copy()
-        p = phase - self.error(phase)
-        p = np.mod(p + np.pi, TWO_PI) - np.pi
-        p[p <= -np.pi] = np.pi
-        return p
+        out = np.empty(phase.shape)
+        _k.table_correct(np.ascontiguousarray(phase).ravel(), self._table[0], out.reshape(-1))
+        return out
+
+    def noise_factor(self, phase) -> np.ndarray:
+        """d(true phase)/d(measured phase) at measured phase(s): ``1 / (1 + e'(phi))``."""
+        if not self.harmonics:
+            return np.ones(np.shape(phase))
+        return 1.0 / (1.0 + self.slope(self.correct(phase)))
 
     @property
     def rms(self) -> float:
@@ -247,25 +305,21 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
                                            np.asarray(x, dtype=np.float64).ravel()[idx]
                                            for x in absolute]
     pairs = []
+    ones = np.ones(idx.size)
     for a, b in zip(order[:-1], order[1:], strict=True):
         r = per[b] / per[a]
-        if abs(r - round(r)) < 1e-12:
-            coarse = samp[a]
-        elif per[a] == 1:
-            coarse = samp[a]  # a one-period phase is its own absolute phase (mod 2 pi)
-        elif absol is not None and absol[a] is not None:
-            coarse = absol[a]
-        else:
-            raise ValueError(f"fit_phase_errors: periods {per[a]} -> {per[b]} is not an "
-                             "integer ratio; pass the absolute phases of a first unwrapping")
-        w = np.mod(r * coarse - samp[b] + np.pi, TWO_PI) - np.pi
-        if sig is None:
-            wt = np.ones(w.size)
-        else:
-            var = (r * sig[a]) ** 2 + sig[b] ** 2
-            with np.errstate(divide="ignore", invalid="ignore"):
-                wt = np.where(np.isfinite(var) & (var > 0), 1.0 / var, 0.0)
-        pairs.append((a, b, r, w, wt))
+        ka = kb = None
+        if abs(r - round(r)) >= 1e-12:
+            if absol is None or absol[b] is None or (per[a] != 1 and absol[a] is None):
+                raise ValueError(f"fit_phase_errors: periods {per[a]} -> {per[b]} is not an "
+                                 "integer ratio; pass the absolute phases of a first "
+                                 "unwrapping")
+            ka = (np.zeros(idx.size) if per[a] == 1
+                  else np.round((absol[a] - samp[a]) / TWO_PI))
+            kb = np.round((absol[b] - samp[b]) / TWO_PI)
+        sa = ones if sig is None else sig[a]
+        sb = ones if sig is None else sig[b]
+        pairs.append((a, b, r, sa, sb, ka, kb))
 
     models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject)
     if significance > 0 and cov is not None:
@@ -289,51 +343,128 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
     return PhaseErrorFit(tuple(models), rms, nkeep)
 
 
+def _wrap(x):
+    return np.mod(x + np.pi, TWO_PI) - np.pi
+
+
+def _initial(samp, per, harm, harm_arr, offs, pairs):
+    """Starting forward coefficients: the linear fit of the errors as functions of the
+    measured phases (inverse form), turned into true-phase estimates, to which each
+    group's forward harmonics are then fitted. Scaled down if not invertible."""
+    n = len(per)
+    n_par = int(offs[-1])
+    ata = np.zeros((n_par, n_par))
+    atb = np.zeros(n_par)
+    for a, b, r, sig_a, sig_b, ka, kb in pairs:
+        if ka is None:
+            w = _wrap(r * samp[a] - samp[b])
+        else:
+            w = _wrap(r * (samp[a] + TWO_PI * ka) - (samp[b] + TWO_PI * kb))
+        var = (r * sig_a) ** 2 + sig_b ** 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            wt = np.where(np.isfinite(var) & (var > 0), 1.0 / var, 0.0)
+        one = np.ones(w.size)
+        _k.pair_normal_equations(samp[a], samp[b], r * one, -one, harm_arr[a], harm_arr[b],
+                                 int(offs[a]), int(offs[b]), w, wt, ata, atb)
+    ridge = 1e-9 * np.trace(ata) / max(n_par, 1) + 1e-300
+    inv_coef = np.linalg.solve(ata + ridge * np.eye(n_par), atb)
+    coef = np.zeros(n_par)
+    for g in range(n):
+        if not harm[g]:
+            continue
+        m = PhaseErrorModel(per[g], tuple(harm[g]), inv_coef[offs[g]:offs[g + 1]:2],
+                            inv_coef[offs[g] + 1:offs[g + 1]:2])
+        est = _wrap(samp[g] - m.error(samp[g]))
+        d = _wrap(samp[g] - est)
+        h = np.asarray(harm[g], dtype=float)
+        design = np.concatenate([np.stack([np.cos(k * est), np.sin(k * est)], 1) for k in h],
+                                axis=1)
+        c, *_ = np.linalg.lstsq(design[::max(1, est.size // 20000)],
+                                d[::max(1, est.size // 20000)], rcond=None)
+        coef[offs[g]:offs[g + 1]] = c
+    for _ in range(20):
+        models = [PhaseErrorModel(per[g], tuple(harm[g]), coef[offs[g]:offs[g + 1]:2],
+                                  coef[offs[g] + 1:offs[g + 1]:2]) for g in range(n)]
+        if all(m.invertible for m in models):
+            return coef
+        coef = 0.5 * coef
+    return np.zeros(n_par)
+
+
 def _solve(samp, per, harm, pairs, iterations, reject):
-    """Iteratively reweighted least squares of the pair equations; returns
-    (models, rms, samples kept, covariance of the coefficients or None)."""
+    """Gauss-Newton fit of the forward models; returns (models, rms, samples kept,
+    covariance of the coefficients or None).
+
+    With phi_g(c) the true phase the model c implies for each measured phase (its
+    inverse), a pair's residual is the inconsistency ``r Phi_a(c) - Phi_b(c)`` (wrapped;
+    with absolute phases when r is not an integer), whose derivative with respect to a
+    coefficient of group g is ``-/+ h(phi_g) / (1 + e_g'(phi_g))``. The residuals are
+    weighted by their variance from the phase noise (updated every iteration); samples
+    beyond ``reject`` robust standard deviations are left out.
+    """
     n = len(per)
     offs = np.cumsum([0] + [2 * len(h) for h in harm])
     n_par = int(offs[-1])
     harm_arr = [np.asarray(h, dtype=np.int64) for h in harm]
-    models = [PhaseErrorModel(per[g], tuple(harm[g]), np.zeros(len(harm[g])),
-                              np.zeros(len(harm[g]))) for g in range(n)]
     if n_par == 0:
-        return models, 0.0, 0, None
-    cov = None
+        return [PhaseErrorModel.zero(p) for p in per], 0.0, 0, None
+    coef = _initial(samp, per, harm, harm_arr, offs, pairs)
+    models = [PhaseErrorModel(per[g], tuple(harm[g]), coef[offs[g]:offs[g + 1]:2].copy(),
+                              coef[offs[g] + 1:offs[g + 1]:2].copy()) for g in range(n)]
     rms = 0.0
     total_keep = 0
-    last = max(1, iterations)
-    for it in range(last + 1):
+    ata = np.eye(n_par)
+    chi2 = 0.0
+    for it in range(max(2, iterations + 2)):
+        est = [m.correct(x) if np.any(m.cos_coef) or np.any(m.sin_coef) else x
+               for m, x in zip(models, samp, strict=True)]
+        gain = [1.0 / (1.0 + m.slope(e)) for m, e in zip(models, est, strict=True)]
         ata = np.zeros((n_par, n_par))
         atb = np.zeros(n_par)
         num = den = chi2 = 0.0
         total_keep = 0
-        for a, b, r, w, wt in pairs:
-            pred = r * models[a].error(samp[a]) - models[b].error(samp[b])
-            resid = np.mod(w - pred + np.pi, TWO_PI) - np.pi
-            z = resid * np.sqrt(wt)
+        for a, b, r, sig_a, sig_b, ka, kb in pairs:
+            if ka is None:
+                res = _wrap(r * est[a] - est[b])
+            else:
+                res = _wrap(r * (est[a] + TWO_PI * ka) - (est[b] + TWO_PI * kb))
+            var = (r * sig_a * gain[a]) ** 2 + (sig_b * gain[b]) ** 2
+            with np.errstate(divide="ignore", invalid="ignore"):
+                wt = np.where(np.isfinite(var) & (var > 0), 1.0 / var, 0.0)
+            z = res * np.sqrt(wt)
             use = wt > 0
             scale = 1.4826 * np.median(np.abs(z[use])) if use.any() else 0.0
             keep = use & (np.abs(z) <= reject * max(scale, 1e-12)) if it else use
-            num += float(np.sum(wt[keep] * resid[keep] ** 2))
+            num += float(np.sum(wt[keep] * res[keep] ** 2))
             chi2 += float(np.sum(z[keep] ** 2))
             den += float(np.sum(wt[keep]))
             total_keep += int(keep.sum())
-            _k.pair_normal_equations(samp[a], samp[b], float(r), harm_arr[a], harm_arr[b],
-                                     int(offs[a]), int(offs[b]), pred + resid,
+            _k.pair_normal_equations(est[a], est[b], -r * gain[a], gain[b], harm_arr[a],
+                                     harm_arr[b], int(offs[a]), int(offs[b]), -res,
                                      np.where(keep, wt, 0.0), ata, atb)
         rms = float(np.sqrt(num / den)) if den > 0 else 0.0
+        if it == max(2, iterations + 2) - 1:
+            break
         # a tiny ridge keeps poorly covered harmonics (partial phase coverage) bounded
         ridge = 1e-9 * np.trace(ata) / n_par + 1e-300
-        lhs = ata + ridge * np.eye(n_par)
-        if it == last:
-            s2 = chi2 / max(total_keep - n_par, 1)
-            cov = s2 * np.linalg.inv(lhs)
+        step = np.linalg.solve(ata + ridge * np.eye(n_par), atb)
+        for _ in range(20):  # keep the model invertible (halve the step if need be)
+            trial = [PhaseErrorModel(per[g], tuple(harm[g]),
+                                     (coef + step)[offs[g]:offs[g + 1]:2].copy(),
+                                     (coef + step)[offs[g] + 1:offs[g + 1]:2].copy())
+                     for g in range(n)]
+            if all(m.invertible for m in trial):
+                break
+            step = 0.5 * step
+        else:
             break
-        coef = np.linalg.solve(lhs, atb)
-        models = [PhaseErrorModel(per[g], tuple(harm[g]), coef[offs[g]:offs[g + 1]:2].copy(),
-                                  coef[offs[g] + 1:offs[g + 1]:2].copy()) for g in range(n)]
+        coef = coef + step
+        models = trial
+        if np.max(np.abs(step)) < 1e-7:
+            break
+    s2 = chi2 / max(total_keep - n_par, 1)
+    ridge = 1e-9 * np.trace(ata) / n_par + 1e-300
+    cov = s2 * np.linalg.inv(ata + ridge * np.eye(n_par))
     return models, rms, total_keep, cov
 
 

@@ -1,0 +1,161 @@
+"""Projector nonlinearity: the periodic phase error learned from the ladder and removed
+(virtual rig, gamma 2.2, patterns not pre-compensated), and the pre-compensation path."""
+
+import numpy as np
+import pytest
+
+from telefringe.decode import decode
+from telefringe.gamma import (
+    PhaseErrorModel,
+    default_harmonics,
+    fit_phase_errors,
+    fit_response,
+    periodic_error,
+)
+from telefringe.patterns import precompensate
+from telefringe.phase import NoiseModel, wrap, wrapped_phase
+from telefringe.simulate.presets import get_preset
+from telefringe.simulate.render import default_groups, render_scan
+from telefringe.simulate.scenes import plate_at_z
+
+
+def rig_noise(vrig):
+    ph = vrig.photometry
+    return NoiseModel(read_noise=ph.read_noise_e * 255 / ph.full_well_e,
+                      gain=255 / ph.full_well_e)
+
+
+@pytest.fixture(scope="module")
+def fast_rig():
+    return get_preset("fast")
+
+
+def _scan(vrig, steps, seed):
+    return render_scan(vrig, plate_at_z(0.0), default_groups(vrig, axes=("u",), steps=steps),
+                       seed=seed, white=False, black=False)
+
+
+def _interior(truth):
+    """Lit plate pixels 2 px or more from an albedo edge (camera defocus and pixel
+    integration mix the phases of both sides of a marker edge: physics, not decoding)."""
+    from scipy.ndimage import binary_erosion
+
+    return truth.lit & binary_erosion(truth.part == 0, iterations=2)
+
+
+def test_three_steps_gamma_error_drops_tenfold_without_wrong_orders(fast_rig):
+    scan, truth = _scan(fast_rig, 3, seed=3)
+    width = fast_rig.projector.intrinsics.width
+    lit = truth.lit & np.isin(truth.part, (0, 1))
+    pc = decode(scan, noise=rig_noise(fast_rig))
+    fit = pc.axes["u"].phase_errors
+    fine = wrapped_phase(scan.stacks[2], steps=3).phase  # the 64-period group
+    true = 2 * np.pi * 64 * truth.u_p / width
+    harm = range(1, 25)
+    before = periodic_error(fine[lit], true[lit], harmonics=harm)
+    after = periodic_error(fit.models[2].correct(fine)[lit], true[lit], harmonics=harm)
+    assert before.peak > 0.1  # gamma 2.2 seen through 3 steps (defocus shrinks it a bit)
+    assert after.peak < before.peak / 10, (before.peak, after.peak)
+    # unwrapping after the correction: every lit plate pixel valid, no wrong order
+    # (a period is 400 / 64 = 6.25 px)
+    assert pc.mask[lit].all()
+    assert np.max(np.abs(pc.u_p[lit] - truth.u_p[lit])) < 6.25 / 4
+    # without it, the 1 -> 8 step is off by up to 8 * 0.29 rad: most orders are untrusted
+    raw = decode(scan, noise=rig_noise(fast_rig), gamma_correction=False)
+    assert raw.mask[lit].mean() < 0.5
+    ok = raw.mask & lit
+    assert np.max(np.abs(raw.u_p[ok] - truth.u_p[ok])) < 6.25 / 2  # flagged, not wrong
+    # at the noise floor on the interior
+    core = _interior(truth)
+    rms = np.sqrt(np.mean((pc.u_p - truth.u_p)[core] ** 2))
+    pred = np.sqrt(np.mean(pc.sigma_u_p[core] ** 2))
+    assert rms == pytest.approx(pred, rel=0.05)
+
+
+def test_four_steps_residual_at_noise_floor(fast_rig):
+    scan, truth = _scan(fast_rig, 4, seed=4)
+    width = fast_rig.projector.intrinsics.width
+    pc = decode(scan, noise=rig_noise(fast_rig))
+    core = _interior(truth)
+    assert pc.mask[core].all()
+    err = (pc.u_p - truth.u_p)[core]
+    rms, pred = np.sqrt(np.mean(err ** 2)), np.sqrt(np.mean(pc.sigma_u_p[core] ** 2))
+    # n ~ 44000 pixels: relative standard error 0.3 %; the noise model itself is good to
+    # about 1 % on this rig (intensity variance), so 3 %
+    assert rms == pytest.approx(pred, rel=0.03), (rms, pred)
+    # what is left of the periodic error is far below the noise of one pixel
+    true = 2 * np.pi * 64 * truth.u_p / width
+    phase = 2 * np.pi * 64 * pc.u_p / width
+    resid = periodic_error(wrap(phase)[core], true[core], harmonics=range(1, 25))
+    sigma_phi = pred * 2 * np.pi * 64 / width
+    assert resid.rms < 0.2 * sigma_phi
+    # the coarse groups' 4th-harmonic error (about 0.011 rad) is found
+    m1 = pc.axes["u"].phase_errors.models[0]
+    assert 0.008 < m1.peak < 0.016
+
+
+def _ladder_phases(steps, gamma, rng, n=60000, sigma=0.01):
+    """Synthetic measured phases of the 1, 8, 64 ladder for random projector x."""
+    x = rng.uniform(0, 1, n)
+    out = []
+    for p in (1, 8, 64):
+        phi = 2 * np.pi * p * x
+        d = 2 * np.pi * np.arange(steps)[:, None] / steps
+        imgs = (0.5 + 0.5 * np.cos(phi[None] + d)) ** gamma
+        imgs = imgs + rng.normal(0, sigma, imgs.shape)
+        out.append(wrapped_phase(imgs, steps=steps).phase)
+    return x, out
+
+
+def test_fit_recovers_synthetic_gamma_error_and_leaves_linear_alone():
+    rng = np.random.default_rng(0)
+    x, ph = _ladder_phases(3, 2.2, rng)
+    fit = fit_phase_errors(ph, [1, 8, 64], steps=[3, 3, 3])
+    for p, m, meas in zip((1, 8, 64), fit.models, ph, strict=True):
+        true = 2 * np.pi * p * x
+        before = periodic_error(meas, true, harmonics=range(1, 25)).peak
+        after = periodic_error(m.correct(meas), true, harmonics=range(1, 25)).peak
+        assert before == pytest.approx(0.291, abs=0.01)
+        assert after < 0.01
+    x, ph = _ladder_phases(4, 1.0, rng)
+    fit = fit_phase_errors(ph, [1, 8, 64], steps=[4, 4, 4])
+    assert all(not m.harmonics for m in fit.models)  # nothing significant: no noise added
+
+
+def test_fit_needs_absolute_phase_for_non_integer_ratios():
+    rng = np.random.default_rng(1)
+    x, ph = _ladder_phases(4, 1.0, rng, n=2000)
+    with pytest.raises(ValueError, match="integer ratio"):
+        fit_phase_errors([ph[1], ph[2]], [8, 60], steps=[4, 4])
+    single = fit_phase_errors([ph[0]], [1], steps=[4])
+    assert single.models[0].harmonics == ()
+
+
+def test_model_helpers():
+    m = PhaseErrorModel(8, (3,), np.array([0.0]), np.array([0.1]))
+    phi = np.linspace(-np.pi, np.pi, 7)
+    assert np.allclose(m.error(phi), 0.1 * np.sin(3 * phi))
+    assert np.allclose(m.slope(phi), 0.3 * np.cos(3 * phi))
+    c = m.correct(phi)
+    assert np.all((c > -np.pi) & (c <= np.pi))
+    assert m.rms == pytest.approx(0.1 / np.sqrt(2))
+    assert m.peak == pytest.approx(0.1, rel=1e-3)
+    assert default_harmonics(3) == (3, 6, 9, 12, 15, 18, 21, 24)
+    assert default_harmonics(12) == (12, 24)
+
+
+def test_precompensation_with_a_measured_response():
+    # a projector with gamma 2.2 and black level 0.02, measured with uniform frames
+    levels = np.linspace(0, 1, 33)
+    captured = 10 + 200 * (0.02 + 0.98 * levels ** 2.2)
+    resp = fit_response(levels, captured)
+    want = np.linspace(0, 1, 101)
+    shown = precompensate(want, inverse_response=resp.inverse)
+    emitted = 0.02 + 0.98 * shown ** 2.2
+    # linear in the wanted value (piecewise-linear inverse over 33 levels)
+    assert np.max(np.abs((emitted - 0.02) / 0.98 - want)) < 0.01
+    assert np.allclose(precompensate(want, gamma=2.2) ** 2.2, want)
+    with pytest.raises(ValueError):
+        precompensate(want)
+    with pytest.raises(ValueError):
+        fit_response([0.2, 0.5, 1.0], [1, 2, 3])
