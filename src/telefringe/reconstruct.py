@@ -340,7 +340,8 @@ class Triangulator:
         flags = np.empty(n, dtype=np.uint8)
         Rc = np.ascontiguousarray(self.rig.camera.R_dev_world)
         kp = np.array((u0, v0, du, dv, ki.k1, s1, s2, W, H, coef[0, 0], coef[0, 1], Bu,
-                       coef[1, 0], coef[1, 1], Bv, t_p[0], t_p[1]), dtype=np.float64)
+                       coef[1, 0], coef[1, 1], Bv, t_p[0], t_p[1], 1.0 / du, 1.0 / dv),
+                      dtype=np.float64)
         args = (self.a.reshape(n), self.b.reshape(n), up_f, vp_f, flat(su), flat(sv),
                 flat(mask_in.astype(bool, copy=False)), has_v, combine, kp, Rc,
                 np.inf if max_residual is None else float(max_residual),
@@ -435,8 +436,11 @@ def _observe(i, up, vp, su, sv, mask, combine, kp):  # pragma: no cover - numba
     s_u = su[i]
     s_v = sv[i]
     # weights of the sensor-mm residuals: 1 / sigma^2 in px (equal without sigmas)
-    wu = (1.0 / (s_u * s_u) if s_u > 0.0 else 1.0) / (kp[2] * kp[2])
-    wv = (1.0 / (s_v * s_v) if s_v > 0.0 else 1.0) / (kp[3] * kp[3])
+    wu = 1.0
+    wv = 1.0
+    if combine:  # loop-invariant: the u-only loop skips these divisions
+        wu = (1.0 / (s_u * s_u) if s_u > 0.0 else 1.0) * (kp[17] * kp[17])
+        wv = (1.0 / (s_v * s_v) if s_v > 0.0 else 1.0) * (kp[18] * kp[18])
     return u_obs, v_obs, valid, (u_obs - kp[0]) * kp[2], (v_obs - kp[1]) * kp[3], s_u, s_v, wu, wv
 
 
@@ -444,14 +448,14 @@ def _observe(i, up, vp, su, sv, mask, combine, kp):  # pragma: no cover - numba
 def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, combine, kp,
             Rc, max_res, max_sz, x, y, z, sig, res, flags):  # pragma: no cover - numba
     cu0, cu1, cu2, cu3, cv0, cv1, cv2, cv3, Au, Av = c
-    du = kp[2]
-    dv = kp[3]
+    idu = kp[17]  # 1 / du
+    idv = kp[18]
     xd = ((cu3 * s + cu2) * s + cu1) * s + cu0
     yd = ((cv3 * s + cv2) * s + cv1) * s + cv0
-    Ju = ((3.0 * cu3 * s + 2.0 * cu2) * s + cu1) / du  # projector px per mm of line
-    Jv = ((3.0 * cv3 * s + 2.0 * cv2) * s + cv1) / dv
-    up_pred = kp[0] + xd / du
-    vp_pred = kp[1] + yd / dv
+    Ju = ((3.0 * cu3 * s + 2.0 * cu2) * s + cu1) * idu  # projector px per mm of line
+    Jv = ((3.0 * cv3 * s + 2.0 * cv2) * s + cv1) * idv
+    up_pred = kp[0] + xd * idu
+    vp_pred = kp[1] + yd * idv
     # residual: NaN where v_p is NaN, which passes the check below. Stored whatever
     # has_v: a conditional store would stop the loop from vectorising
     ru = up_pred - u_obs
