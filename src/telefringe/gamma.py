@@ -115,18 +115,27 @@ class PhaseErrorModel:
                 break
         return phi
 
+    def correction_table(self, n: int) -> tuple[np.ndarray, float]:
+        """The correction e(phi) against the measured phase at ``-pi + 2 pi j / n``,
+        (n,) rad, and the largest error of its linear interpolation (checked at every
+        mid-point against the exact inverse), rad."""
+        n = int(n)
+        if not self.harmonics:
+            return np.zeros(n), 0.0
+        grid = -np.pi + TWO_PI * np.arange(n) / n
+        g = grid - self._invert(grid)
+        mid = grid + np.pi / n
+        gm = mid - self._invert(mid)
+        interp = 0.5 * (g + np.roll(g, -1))
+        return g, float(np.max(np.abs(interp - gm)))
+
     @cached_property
     def _table(self) -> tuple[np.ndarray, float]:
         if not self.harmonics:
             return np.zeros(1), 0.0
         n = 4096
         while True:
-            grid = -np.pi + TWO_PI * np.arange(n) / n
-            g = grid - self._invert(grid)
-            mid = grid + np.pi / n
-            gm = mid - self._invert(mid)
-            interp = 0.5 * (g + np.roll(g, -1))
-            err = float(np.max(np.abs(interp - gm)))
+            g, err = self.correction_table(n)
             if err <= 1e-8 or n >= 2 ** 20:
                 return g, err
             n *= 4

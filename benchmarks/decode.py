@@ -1,0 +1,273 @@
+"""Decoding speed: 12 images of 1280 x 1024 uint8 (4 steps x 1/8/64 periods, one axis)
+-> projector coordinate u_p + mask + modulation, in megapixels (camera pixels) per second.
+
+Usage: python benchmarks/decode.py [--runs 7] [--threads N] [--peers /tmp/benchvenv]
+
+Prints, median (and best) of ``--runs`` runs after a warm-up call:
+
+- telefringe ``decode_axis_fast`` (fused numba kernel, parallel, exact-to-1.3e-9 rad
+  polynomial arctangent, no fastmath), without and with a nonlinearity correction table;
+- telefringe ``decode`` (the full-featured path: float64 NumPy, exact atan2, masks,
+  uncertainty, nonlinearity learned from the data);
+- a plain NumPy float32 reference (atan2, hierarchical unwrapping, mask);
+- the peers ``fringes`` (GPL-3.0: benchmarked in its own throwaway venv, never imported
+  here) and OpenCV contrib's ``structured_light`` (3-step PSP only), when that venv
+  exists (``--peers``, default /tmp/benchvenv; create it with
+  ``python -m venv /tmp/benchvenv && /tmp/benchvenv/bin/pip install fringes
+  opencv-contrib-python-headless``);
+- what bounds the speed: the rate of only reading the input once (12 bytes per pixel),
+  and of the fused kernel on a small image that stays in cache (arithmetic alone);
+- peak memory of a full-frame fast decode (tracemalloc in a fresh process, plus input).
+
+The machine is shared: the load average is printed with the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROWS, COLS, WIDTH = 1024, 1280, 800
+PERIODS = (1, 8, 64)
+STEPS = 4
+
+
+def make_images(seed: int = 0) -> list[np.ndarray]:
+    """Three 4-step groups of a tilted plane (u from 20 to about 780), 8-bit, noisy."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:ROWS, 0:COLS].astype(np.float64)
+    x = 20.0 + xx * 0.56 + 0.03 * yy
+    out = []
+    for p in PERIODS:
+        k = np.arange(STEPS)[:, None, None]
+        img = 60.0 + 80.0 * (1.0 + np.cos(2 * np.pi * p * x / WIDTH + 2 * np.pi * k / STEPS))
+        img += rng.normal(0.0, 1.5, img.shape)
+        out.append(np.clip(np.round(img), 0, 255).astype(np.uint8))
+    return out
+
+
+def timeit(fn, runs: int) -> tuple[float, float]:
+    fn()  # warm-up (compilation / cache load)
+    ts = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    return statistics.median(ts), min(ts)
+
+
+def numpy_reference(stacks, min_mod=5.1):
+    """Plain NumPy float32: 4-step phase, hierarchical unwrapping, mask."""
+    two_pi = np.float32(2 * np.pi)
+    phi_abs = None
+    ok = None
+    for st, p, prev in zip(stacks, PERIODS, (None,) + PERIODS[:-1], strict=True):
+        f = st.astype(np.float32)
+        s = f[1] - f[3]
+        c = f[0] - f[2]
+        ph = np.arctan2(-s, c)
+        mod = np.float32(0.5) * np.sqrt(s * s + c * c)
+        good = (mod >= min_mod) & (st.max(axis=0) < 255)
+        if phi_abs is None:
+            phi_abs = np.mod(ph, two_pi)
+            ok = good
+        else:
+            pred = phi_abs * np.float32(p / prev)
+            phi_abs = ph + two_pi * np.round((pred - ph) / two_pi)
+            ok &= good & (np.abs(pred - phi_abs) <= np.float32(np.pi / 2))
+    u = phi_abs * np.float32(WIDTH / (2 * np.pi * PERIODS[-1]))
+    u[~ok] = np.nan
+    return u, ok, mod
+
+
+_PEER = textwrap.dedent(r'''
+    import json, statistics, sys, time
+    import numpy as np
+    runs = int(sys.argv[1])
+    out = {}
+    def timeit(fn):
+        fn()
+        ts = []
+        for _ in range(runs):
+            t = time.perf_counter(); fn(); ts.append(time.perf_counter() - t)
+        return statistics.median(ts), min(ts)
+    try:
+        import fringes
+        f = fringes.Fringes(X=1280, Y=1024, axes=(0,), K=3, N=(4, 4, 4), v=(1, 8, 64))
+        I = f.encode()
+        med, best = timeit(lambda: f.decode(I))
+        out["fringes"] = {"median_s": med, "best_s": best, "version": fringes.__version__,
+                          "what": "its own 12 frames (4 steps x 3 frequencies, one axis), "
+                                  "temporal unwrapping"}
+    except Exception as exc:  # noqa: BLE001
+        out["fringes"] = {"error": repr(exc)}
+    try:
+        import cv2
+        sl = cv2.structured_light
+        params = sl.SinusoidalPattern.Params()
+        params.width, params.height = 1280, 1024
+        params.nbrOfPeriods = 64
+        params.methodId = sl.PSP
+        params.setMarkers = False
+        pat = sl.SinusoidalPattern_create(params)
+        ok, imgs = pat.generate()
+        imgs = [np.ascontiguousarray(i) for i in imgs[:3]]
+        def run():
+            wrapped, shadow = pat.computePhaseMap(imgs)
+            pat.unwrapPhaseMap(wrapped, (1280, 1024), shadowMask=shadow)
+        med, best = timeit(run)
+        out["opencv"] = {"median_s": med, "best_s": best, "version": cv2.__version__,
+                         "what": "3 images (3-step PSP, one frequency) + spatial unwrapping"}
+    except Exception as exc:  # noqa: BLE001
+        out["opencv"] = {"error": repr(exc)}
+    print(json.dumps(out))
+''')
+
+_MEMORY = textwrap.dedent(r'''
+    import sys, tracemalloc
+    import numpy as np
+    from telefringe.decode import decode_axis_fast
+    stacks = [np.load(p) for p in sys.argv[1:4]]
+    decode_axis_fast([s[:, :16, :16].copy() for s in stacks], (1, 8, 64), 4,
+                     length=800)  # load the cached kernel
+    tracemalloc.start()
+    r = decode_axis_fast(stacks, (1, 8, 64), 4, length=800)
+    cur, peak = tracemalloc.get_traced_memory()
+    print(peak / 2**20, sum(s.nbytes for s in stacks) / 2**20)
+''')
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=7)
+    ap.add_argument("--threads", type=int, default=None, help="numba threads (default all)")
+    ap.add_argument("--peers", default="/tmp/benchvenv", help="venv with fringes and OpenCV")
+    args = ap.parse_args()
+
+    import numba
+
+    from telefringe import _kernels as _k
+    from telefringe.decode import decode, decode_axis_fast
+    from telefringe.gamma import PhaseErrorModel
+    from telefringe.scan import PhaseGroup, Scan, ScanManifest
+
+    if args.threads:
+        numba.set_num_threads(args.threads)
+    mpx = ROWS * COLS / 1e6
+    stacks = make_images()
+    print(f"workload: {len(PERIODS) * STEPS} images {COLS} x {ROWS} uint8 "
+          f"({sum(s.nbytes for s in stacks) / 1e6:.1f} MB), periods {PERIODS}, {STEPS} steps;"
+          f" numba threads {numba.get_num_threads()}, cores {os.cpu_count()}, load average "
+          f"{os.getloadavg()[0]:.2f}")
+    rows = []
+
+    def report(name, med, best, note=""):
+        rows.append((name, mpx / med, mpx / best, note))
+        print(f"  {name:<44s} {mpx / med:8.1f} Mpx/s (best {mpx / best:7.1f})  {note}",
+              flush=True)
+
+    t0 = time.perf_counter()
+    decode_axis_fast([s[:, :8, :8].copy() for s in stacks], PERIODS, STEPS, length=WIDTH)
+    print(f"cold start (load the cached kernel): {time.perf_counter() - t0:.2f} s")
+    med, best = timeit(lambda: decode_axis_fast(stacks, PERIODS, STEPS, length=WIDTH),
+                       args.runs)
+    report("telefringe decode_axis_fast", med, best, "u_p float64 + mask + modulation")
+    med, best = timeit(lambda: decode_axis_fast(stacks, PERIODS, STEPS, length=WIDTH,
+                                                dtype=np.float32), args.runs)
+    report("telefringe decode_axis_fast (float32 u_p)", med, best)
+    models = [PhaseErrorModel(p, (4, 8), np.array([0.0, 0.0]), np.array([-0.011, -0.001]))
+              for p in PERIODS]
+    med, best = timeit(lambda: decode_axis_fast(stacks, PERIODS, STEPS, length=WIDTH,
+                                                phase_errors=models), args.runs)
+    report("telefringe decode_axis_fast + gamma table", med, best,
+           "(correction learned once per rig)")
+    scan = Scan(ScanManifest(WIDTH, 600, tuple(PhaseGroup("u", p, STEPS) for p in PERIODS)),
+                tuple(stacks))
+    med, best = timeit(lambda: decode(scan), max(1, args.runs // 3))
+    report("telefringe decode (full: sigma, masks, gamma fit)", med, best)
+    med, best = timeit(lambda: decode(scan, gamma_correction=False), max(1, args.runs // 3))
+    report("telefringe decode (full, no gamma fit)", med, best)
+    med, best = timeit(lambda: numpy_reference(stacks), args.runs)
+    report("plain NumPy float32 reference", med, best)
+
+    # what bounds it
+    big = np.concatenate(stacks)
+    med, best = timeit(lambda: _read_only(big), args.runs)
+    report("floor: read the input once (numba sum)", med, best)
+    # arithmetic alone: the same kernel on 16 rows repeated (inputs stay in cache);
+    # 64 calls make up a full frame, the per-call Python overhead is timed and removed
+    small = [np.ascontiguousarray(s[:, :16, :]) for s in stacks]
+    reps = ROWS // 16
+    med, best = timeit(lambda: [decode_axis_fast(small, PERIODS, STEPS, length=WIDTH)
+                                for _ in range(reps)], args.runs)
+    tiny = [np.ascontiguousarray(s[:, :1, :8]) for s in stacks]
+    over, _ = timeit(lambda: [decode_axis_fast(tiny, PERIODS, STEPS, length=WIDTH)
+                              for _ in range(reps)], args.runs)
+    report("fused kernel on cache-resident rows", max(med - over, 1e-9),
+           max(best - over, 1e-9), "(arithmetic alone)")
+
+    peers = Path(args.peers) / "bin" / "python"
+    if peers.exists():
+        with tempfile.TemporaryDirectory() as tmp:
+            script = Path(tmp) / "peer.py"
+            script.write_text(_PEER)
+            res = subprocess.run([str(peers), str(script), str(max(3, args.runs // 2))],
+                                 capture_output=True, text=True, timeout=3600)
+        try:
+            out = json.loads(res.stdout.strip().splitlines()[-1])
+        except (IndexError, json.JSONDecodeError):
+            out = {}
+            print(f"  peers: failed ({res.stderr.strip()[-300:]})")
+        for name, r in out.items():
+            if "error" in r:
+                print(f"  {name}: cannot run ({r['error']})")
+            else:
+                report(f"{name} {r['version']}", r["median_s"], r["best_s"], r["what"])
+    else:
+        print(f"  peers: no venv at {args.peers} (see the module docstring)")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        script = Path(tmp) / "mem.py"
+        script.write_text(_MEMORY)
+        names = []
+        for i, st in enumerate(stacks):
+            names.append(str(Path(tmp) / f"s{i}.npy"))
+            np.save(names[-1], st)
+        res = subprocess.run([sys.executable, str(script), *names], capture_output=True,
+                             text=True, timeout=600)
+    try:
+        peak, inp = (float(x) for x in res.stdout.split())
+        print(f"peak memory of a full-frame fast decode: {peak:.1f} MB allocated by the decode "
+              f"(outputs; numba scratch is 2 x 18 kB) + {inp:.1f} MB input = "
+              f"{peak + inp:.1f} MB")
+    except ValueError:
+        print(f"memory measurement failed: {res.stderr.strip()[-300:]}")
+    fast = rows[0][1]
+    floor = [r for r in rows if r[0].startswith("floor")][0][1]
+    arith = [r for r in rows if r[0].startswith("fused kernel on cache")][0][1]
+    bound = "memory (reading the input)" if fast > 0.7 * floor else (
+        "arithmetic (the three polynomial arctangents and divisions per pixel)"
+        if fast > 0.7 * arith else "neither alone (memory traffic + arithmetic)")
+    print(f"bound: {bound}: fast {fast:.0f}, read floor {floor:.0f}, cache-resident "
+          f"{arith:.0f} Mpx/s")
+    del _k
+
+
+def _read_only(big):
+    from telefringe import _kernels as _k
+
+    return _k.read_floor(big)
+
+
+if __name__ == "__main__":
+    main()
