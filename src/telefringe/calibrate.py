@@ -799,6 +799,8 @@ class RigCalibration:
     rms_camera, rms_projector : float, px, RMS reprojection error (2-D length).
     rms_per_pose : (n_poses, 2) ndarray, px (camera, projector); NaN for unused poses.
     outliers : tuple of Outlier.
+    camera_observations, projector_observations : (n_poses, n_points, 2) ndarray, px,
+        the observations given (NaN where missing).
     principal_point : str, "estimate" or "fixed"; principal_point_weak : (bool, bool)
         for (camera, projector).
     mirror : str, how the global mirror ambiguity was resolved ("projector_side=..."
@@ -827,12 +829,24 @@ class RigCalibration:
     rms_projector: float
     rms_per_pose: np.ndarray
     outliers: tuple[Outlier, ...]
+    camera_observations: np.ndarray
+    projector_observations: np.ndarray
     principal_point: str
     principal_point_weak: tuple[bool, bool]
     mirror: str
     warnings: tuple[str, ...] = ()
     camera_alone: DeviceCalibration | None = field(default=None, repr=False)
     projector_alone: DeviceCalibration | None = field(default=None, repr=False)
+
+    @property
+    def camera(self) -> TelecentricDevice:
+        """The calibrated camera (``rig.camera``): a RigCalibration can stand for a Rig."""
+        return self.rig.camera
+
+    @property
+    def projector(self) -> TelecentricDevice:
+        """The calibrated projector (``rig.projector``)."""
+        return self.rig.projector
 
     def std_of(self, name: str) -> float:
         """Standard deviation of one parameter by name (see :data:`RIG_PARAMETER_NAMES`)."""
@@ -1088,6 +1102,7 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
         sigma_projector=float(sigmas[1]), residuals_camera=residuals[0],
         residuals_projector=residuals[1], rms_camera=rms_c, rms_projector=rms_p,
         rms_per_pose=np.column_stack([per_c, per_p]), outliers=tuple(outliers),
+        camera_observations=cam.copy(), projector_observations=proj.copy(),
         principal_point=principal_point, principal_point_weak=weak, mirror=mirror,
         warnings=tuple(warns), camera_alone=cal_c, projector_alone=cal_p)
 
@@ -1100,6 +1115,7 @@ def _q_of(k: Intrinsics) -> list[float]:
 def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_pixel_size,
                          reference_pose: str, *, progress: Callable | None = None,
                          projector_side: str | None = None, min_poses: int = 4,
+                         decode_options: dict | None = None,
                          **kwargs) -> RigCalibration:
     """Decode, detect and calibrate from the scans of a calibration set.
 
@@ -1115,6 +1131,9 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
     reference_pose : str, name of the pose defining the world frame.
     progress : callable ``progress(done, name)`` or None, called after each pose.
     projector_side, min_poses, **kwargs : passed to :func:`calibrate_rig`.
+    decode_options : dict, keyword arguments for :func:`telefringe.decode.decode` (e.g.
+        ``{"gamma_correction": False}``: 4-step fringes hide most of a projector gamma,
+        and the fit over each marker's surround averages the rest).
 
     Returns
     -------
@@ -1157,7 +1176,7 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
             if progress is not None:
                 progress(done, name)
             continue
-        coords = decode(scan)
+        coords = decode(scan, **(decode_options or {}))
         if getattr(coords, "v_p", None) is None:
             raise CalibrationError(f"pose {name}: the decoder returned no v_p")
         pobs = projector_observations(coords.u_p, coords.v_p, coords.mask, det)

@@ -741,6 +741,120 @@ class ProjectorObservations:
     n_pixels: np.ndarray
 
 
+def _surround_fit_py(u_p, v_p, valid, cu, cv, R, exps, reject, min_pixels):
+    """Robust polynomial fit of u_p, v_p over the valid pixels of a disc of radius ``R``
+    around (cu, cv); returns (u, v, sigma_u, sigma_v, n_used) with n_used = 0 on failure.
+    Plain code, compiled by numba when available (:func:`_surround_kernel`)."""
+    H, W = u_p.shape
+    ri = int(np.ceil(R)) + 1
+    ic, jc = int(np.floor(cv + 0.5)), int(np.floor(cu + 0.5))
+    nmax = (2 * ri + 1) * (2 * ri + 1)
+    t = exps.shape[0]
+    A = np.empty((nmax, t))
+    Y = np.empty((nmax, 2))
+    m = 0
+    quads = np.zeros(4)
+    xp = np.ones(4)
+    yp = np.ones(4)
+    for i in range(max(ic - ri, 0), min(ic + ri + 1, H)):
+        dy = (i - cv) / R
+        for j in range(max(jc - ri, 0), min(jc + ri + 1, W)):
+            if not valid[i, j]:
+                continue
+            dx = (j - cu) / R
+            if dx * dx + dy * dy > 1.0:
+                continue
+            for q in range(1, 4):
+                xp[q] = xp[q - 1] * dx
+                yp[q] = yp[q - 1] * dy
+            for q in range(t):
+                A[m, q] = xp[exps[q, 0]] * yp[exps[q, 1]]
+            Y[m, 0] = u_p[i, j]
+            Y[m, 1] = v_p[i, j]
+            quads[(1 if dx >= 0 else 0) * 2 + (1 if dy >= 0 else 0)] += 1
+            m += 1
+    out = np.zeros(5)
+    if m < min_pixels or quads.min() < 0.05 * m:
+        return out
+    keep = np.ones(m, dtype=np.bool_)
+    coef = np.zeros((t, 2))
+    Ninv = np.zeros((t, t))
+    res = np.zeros((m, 2))
+    for _ in range(5):
+        N = np.zeros((t, t))
+        b = np.zeros((t, 2))
+        for r in range(m):
+            if keep[r]:
+                for p in range(t):
+                    b[p, 0] += A[r, p] * Y[r, 0]
+                    b[p, 1] += A[r, p] * Y[r, 1]
+                    for q in range(p, t):
+                        N[p, q] += A[r, p] * A[r, q]
+        for p in range(t):
+            for q in range(p):
+                N[p, q] = N[q, p]
+        if np.linalg.matrix_rank(N) < t:
+            return out
+        Ninv = np.linalg.inv(N)
+        coef = Ninv @ b
+        nk = 0
+        for r in range(m):
+            for a in range(2):
+                acc = Y[r, a]
+                for p in range(t):
+                    acc -= A[r, p] * coef[p, a]
+                res[r, a] = acc
+        absu = np.empty(m)
+        absv = np.empty(m)
+        for r in range(m):
+            if keep[r]:
+                absu[nk] = abs(res[r, 0])
+                absv[nk] = abs(res[r, 1])
+                nk += 1
+        su = max(1.4826 * np.median(absu[:nk]), 1e-9)
+        sv = max(1.4826 * np.median(absv[:nk]), 1e-9)
+        changed = False
+        for r in range(m):
+            new = abs(res[r, 0]) <= reject * su and abs(res[r, 1]) <= reject * sv
+            if new != keep[r]:
+                changed = True
+            keep[r] = new
+        if not changed:
+            break
+    nk = 0
+    ssu = 0.0
+    ssv = 0.0
+    for r in range(m):
+        if keep[r]:
+            nk += 1
+            ssu += res[r, 0] ** 2
+            ssv += res[r, 1] ** 2
+    if nk < min_pixels:
+        return out
+    dof = max(nk - t, 1)
+    out[0] = coef[0, 0]
+    out[1] = coef[0, 1]
+    out[2] = np.sqrt(ssu / dof * Ninv[0, 0])
+    out[3] = np.sqrt(ssv / dof * Ninv[0, 0])
+    out[4] = nk
+    return out
+
+
+_SURROUND = None
+
+
+def _surround_kernel():
+    global _SURROUND
+    if _SURROUND is None:
+        try:
+            import numba
+
+            _SURROUND = numba.njit(cache=True, fastmath=False)(_surround_fit_py)
+        except ImportError:  # pragma: no cover - numba is a dependency
+            _SURROUND = _surround_fit_py
+    return _SURROUND
+
+
 def projector_observations(u_p, v_p, mask, centers, *, ellipses=None,
                            marker_radius_px: float | None = None, window_px=None,
                            exclude_scale: float = 1.3, exclude_margin_px: float = 3.0,
@@ -824,48 +938,23 @@ def projector_observations(u_p, v_p, mask, centers, *, ellipses=None,
     out = np.full((n, 2), np.nan)
     sig = np.full((n, 2), np.nan)
     npx = np.zeros(n, dtype=int)
-    exps = [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
-    ri = int(np.ceil(R))
+    exps = np.array([(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)],
+                    dtype=np.int64)
+    fit = _surround_kernel()
+    up = np.ascontiguousarray(u_p, dtype=np.float64)
+    vp = np.ascontiguousarray(v_p, dtype=np.float64)
+    va = np.ascontiguousarray(valid)
     for k in range(n):
         c = pts[k]
         if not np.all(np.isfinite(c)):
             continue
-        cu, cv = int(round(c[0])), int(round(c[1]))
-        u0, u1 = max(cu - ri, 0), min(cu + ri + 1, W)
-        v0, v1 = max(cv - ri, 0), min(cv + ri + 1, H)
-        if u1 <= u0 or v1 <= v0:
+        res = fit(up, vp, va, float(c[0]), float(c[1]), R, exps, float(reject_sigmas),
+                  int(min_pixels))
+        if res[4] <= 0:
             continue
-        yy, xx = np.mgrid[v0:v1, u0:u1]
-        dx, dy = (xx - c[0]) / R, (yy - c[1]) / R
-        sel = valid[v0:v1, u0:u1] & (dx * dx + dy * dy <= 1.0)
-        if sel.sum() < min_pixels:
-            continue
-        dxs, dys = dx[sel], dy[sel]
-        # the surround must enclose the centre: every quadrant represented
-        quads = np.bincount((dxs >= 0).astype(int) * 2 + (dys >= 0), minlength=4)
-        if quads.min() < 0.05 * sel.sum():
-            continue
-        A = np.column_stack([dxs**i * dys**j for i, j in exps])
-        Y = np.column_stack([u_p[v0:v1, u0:u1][sel], v_p[v0:v1, u0:u1][sel]])
-        keep = np.ones(A.shape[0], dtype=bool)
-        for _ in range(3):
-            coef, *_ = np.linalg.lstsq(A[keep], Y[keep], rcond=None)
-            res = Y - A @ coef
-            s = 1.4826 * np.median(np.abs(res[keep]), axis=0)
-            s = np.maximum(s, 1e-9)
-            new = np.all(np.abs(res) <= reject_sigmas * s, axis=1)
-            if np.array_equal(new, keep):
-                break
-            keep = new
-        if keep.sum() < min_pixels:
-            continue
-        Ak = A[keep]
-        dof = max(Ak.shape[0] - Ak.shape[1], 1)
-        rss = np.sum(res[keep] ** 2, axis=0) / dof
-        cov00 = np.linalg.inv(Ak.T @ Ak)[0, 0]
-        out[k] = coef[0]
-        sig[k] = np.sqrt(rss * cov00)
-        npx[k] = int(keep.sum())
+        out[k] = res[0], res[1]
+        sig[k] = res[2], res[3]
+        npx[k] = int(res[4])
     return ProjectorObservations(out, sig, npx)
 
 
