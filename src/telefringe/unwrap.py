@@ -400,7 +400,7 @@ def decode_gray(images, threshold) -> GrayCode:
 
     Parameters
     ----------
-    images : (n, rows, cols) array_like, DN; bright = 1.
+    images : (n, rows, cols) array_like, DN; bright = 1 (any trailing shape).
     threshold : (rows, cols) array_like, DN (e.g. the mean of the phase images).
 
     Returns
@@ -409,7 +409,7 @@ def decode_gray(images, threshold) -> GrayCode:
     """
     imgs = np.asarray(images)
     thr = np.asarray(threshold, dtype=np.float64)
-    if imgs.ndim != 3 or imgs.shape[1:] != thr.shape:
+    if imgs.ndim < 2 or imgs.shape[1:] != thr.shape:
         raise ValueError(f"Gray images {imgs.shape} and threshold {thr.shape} do not match")
     n = imgs.shape[0]
     bits = np.empty(imgs.shape, dtype=bool)
@@ -482,8 +482,8 @@ def unwrap_gray(phase, images, threshold, *, bits: int, complementary: bool, len
 
     With the plain code a pixel whose phase puts it within a quarter period of a block
     edge takes, of the block's two ends, the one whose edge bit reads with less contrast
-    (its contrast less than half the other's; the phase and the code may disagree by a
-    fraction of a pixel at an edge).
+    (its contrast below half the pixel's typical bit contrast and below the other's; the
+    phase and the code may disagree by a fraction of a pixel at an edge).
 
     Reliability: a pixel is unreliable when a clear bit (contrast >= ``min_contrast`` and
     >= a quarter of the median contrast of the pixel's bits) disagrees with the bit
@@ -531,8 +531,11 @@ def unwrap_gray(phase, images, threshold, *, bits: int, complementary: bool, len
         c_end = _edge_bit_contrast(b, b + 1, code, bits)
         # near a block edge the phase alone cannot tell the block's two ends apart when the
         # code and phase disagree by a hair: the end whose edge bit is less clear wins
-        order = (order + (near_start & (c_end < 0.5 * c_start))
-                 - (near_end & (c_start < 0.5 * c_end)))
+        # (its contrast below half the pixel's typical bit contrast: the other end's bit,
+        # 3/4 of a period away, reads at full contrast; no edge beyond the projector)
+        half = 0.5 * typical
+        order = (order + (near_start & (c_end < half) & (c_end < c_start))
+                 - (near_end & (c_start < half) & (c_start < c_end)))
         lo, hi = np.minimum(c_start, c_end), np.maximum(c_start, c_end)
         ambiguous = (near_start | near_end) & (lo < min_contrast) & (hi < 2.0 * lo)
     absolute = phase + TWO_PI * order
