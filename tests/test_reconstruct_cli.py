@@ -23,7 +23,7 @@ def plate_out(tmp_path_factory):
     scan, truth = sim.render_scan(vr, scenes.plate_at_z(-0.5), sim.default_groups(vr), seed=2)
     write_scan(tmp / "scan", scan)
     out = tmp / "out"
-    rec = reconstruct_to_folder(tmp / "scan", vr.rig, out)
+    rec = reconstruct_to_folder(tmp / "scan", vr.rig, out, gamma_correction=False)
     return tmp, out, rec, vr
 
 
