@@ -39,16 +39,28 @@ def _median_time(fn, runs):
 
 
 def _write_rig(path: Path, rig) -> bool:
+    """A hand-made rig.json of the true rig (no calibration report); False when this
+    telefringe has no rig.json reader."""
+    import json
+
     try:
-        from telefringe.io import rig as rig_io
+        from telefringe.io import rig as rig_io  # noqa: F401
     except ImportError:
         return False
-    for name in ("write_rig", "save_rig"):
-        fn = getattr(rig_io, name, None)
-        if fn is not None:
-            fn(path, rig)
-            return True
-    return False
+    from telefringe.model import rotvec_from_rotation
+
+    def dev(d):
+        k = d.intrinsics
+        return {"width": k.width, "height": k.height, "pixel_size_mm": [k.du, k.dv],
+                "m": k.m, "principal_point_px": [k.u0, k.v0],
+                "distortion": {"k1": k.k1, "s1": k.s1, "s2": k.s2},
+                "rotation_vector": [float(v) for v in rotvec_from_rotation(d.R_dev_world)],
+                "t_mm": [float(v) for v in d.t_dev]}
+
+    path.write_text(json.dumps({"format": "telefringe-rig", "version": 1,
+                                "world_frame": {"reference_pose": "truth"},
+                                "camera": dev(rig.camera), "projector": dev(rig.projector)}))
+    return True
 
 
 def main() -> None:

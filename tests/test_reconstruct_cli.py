@@ -95,3 +95,44 @@ def test_height_map_of_the_plate(plate_out):
     # the plate at -0.5 mm fills most of the map; markers' edges add a few outliers
     assert np.median(z) == pytest.approx(-0.5, abs=2e-3)
     assert hm.pixel_mm == pytest.approx(0.0208 / 0.1597, rel=0.02)
+
+
+def write_rig_json(path, rig):
+    """A hand-made rig.json (no calibration report) of a Rig."""
+    from telefringe.model import rotvec_from_rotation
+
+    def dev(d):
+        k = d.intrinsics
+        return {"width": k.width, "height": k.height, "pixel_size_mm": [k.du, k.dv],
+                "m": k.m, "principal_point_px": [k.u0, k.v0],
+                "distortion": {"k1": k.k1, "s1": k.s1, "s2": k.s2},
+                "rotation_vector": [float(v) for v in rotvec_from_rotation(d.R_dev_world)],
+                "t_mm": [float(v) for v in d.t_dev]}
+
+    doc = {"format": "telefringe-rig", "version": 1,
+           "world_frame": {"reference_pose": "truth"},
+           "camera": dev(rig.camera), "projector": dev(rig.projector)}
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_reconstruct_command(plate_out, tmp_path, capsys):
+    pytest.importorskip("telefringe.io.rig")
+    tmp, out, rec, vr = plate_out
+    rig_json = write_rig_json(tmp_path / "rig.json", vr.rig)
+    out2 = tmp_path / "out2"
+    assert main(["reconstruct", str(tmp / "scan"), "--rig", str(rig_json), "-o", str(out2),
+                 "--no-gamma-correction", "--no-ply"]) == 0
+    assert (out2 / "points.npz").exists() and not (out2 / "cloud.ply").exists()
+    from telefringe.io.export import read_points
+
+    cloud, texture = read_points(out2)
+    assert cloud.count == rec.cloud.count
+    assert np.allclose(cloud.xyz, rec.cloud.xyz, equal_nan=True, atol=1e-9)
+    assert "points" in capsys.readouterr().out
+    # user errors: one line, exit status 2, nothing written
+    assert main(["reconstruct", str(tmp / "scan"), "--rig", str(tmp_path / "nope.json"),
+                 "-o", str(tmp_path / "o3")]) == 2
+    assert main(["reconstruct", str(tmp / "scan"), "--rig", str(rig_json), "-o",
+                 str(tmp_path / "o4"), "--pixel-mm", "-1"]) == 2
+    assert not (tmp_path / "o3").exists() and not (tmp_path / "o4").exists()

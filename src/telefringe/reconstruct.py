@@ -73,6 +73,17 @@ class TriangulationError(ValueError):
     """The rig or the coordinates cannot be triangulated (degenerate geometry, shapes)."""
 
 
+def _as_rig(rig) -> Rig:
+    """A Rig from a Rig or anything holding one as ``.rig`` (e.g. the RigCalibration
+    that ``telefringe.io.rig.load_rig`` returns)."""
+    if isinstance(rig, Rig):
+        return rig
+    inner = getattr(rig, "rig", None)
+    if isinstance(inner, Rig):
+        return inner
+    raise TriangulationError(f"expected a telefringe.model.Rig, got {type(rig).__name__}")
+
+
 def _readonly(a):
     if a is not None:
         a.setflags(write=False)
@@ -226,6 +237,7 @@ class Triangulator:
         Raises :class:`TriangulationError` when ``shape`` does not match the camera's
         declared image size (when it declares one).
         """
+        rig = _as_rig(rig)
         rows, cols = (int(n) for n in shape)
         if rows <= 0 or cols <= 0:
             raise TriangulationError(f"shape must be positive (rows, cols), got {shape}")
@@ -240,6 +252,7 @@ class Triangulator:
     @classmethod
     def for_pixels(cls, rig: Rig, u, v) -> Triangulator:
         """Triangulator for camera pixels at (u, v) (any shape, observed/distorted px)."""
+        rig = _as_rig(rig)
         u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64),
                                    np.asarray(v, dtype=np.float64))
         cam: TelecentricDevice = rig.camera
@@ -617,7 +630,7 @@ def triangulate(rig: Rig, coords, *, max_residual: float | None = 1.0,
 
     Parameters
     ----------
-    rig : Rig
+    rig : Rig (or an object holding one as ``.rig``, like ``load_rig``'s result)
         The calibrated rig (world frame: the calibration target's reference pose).
     coords : object with attributes ``u_p``, ``v_p``, ``mask``, ``sigma_u_p``, ``sigma_v_p``
         E.g. :class:`telefringe.decode.ProjectorCoordinates`. ``u_p`` (rows, cols)
@@ -660,7 +673,7 @@ def triangulate(rig: Rig, coords, *, max_residual: float | None = 1.0,
     shape = tuple(int(n) for n in np.shape(up))
     if len(shape) != 2:
         raise TriangulationError(f"u_p must be a (rows, cols) array, got shape {shape}")
-    tri = _cached_triangulator(rig, shape)
+    tri = _cached_triangulator(_as_rig(rig), shape)
     return tri.triangulate(coords, max_residual=max_residual, max_sigma_z=max_sigma_z,
                            use_v_p=use_v_p, check_bounds=check_bounds)
 
@@ -974,6 +987,7 @@ def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
     from .decode import decode
     from .targets import fringe_free_image
 
+    rig = _as_rig(rig)
     shape = tuple(int(n) for n in scan.stacks[0].shape[1:])
     kc = rig.camera.intrinsics
     if kc.width and kc.height and (kc.height, kc.width) != shape:

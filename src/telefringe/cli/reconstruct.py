@@ -32,6 +32,7 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
 
     output = Path(output)
     check_can_write(output, force=force)
+    rig = getattr(rig, "rig", rig)  # load_rig gives a RigCalibration holding the Rig
     man = load_scan_manifest(scan_dir)
     kp = rig.projector.intrinsics
     if kp.width and kp.height and (man.projector_width, man.projector_height) != (
