@@ -972,7 +972,7 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
                              image_size=projector_size, name="projector", **common)
     both = cal_c.used & cal_p.used
     for i in range(n_poses):
-        if not both[i]:
+        if not both[i] and not any(w.startswith(f"pose {names[i]}:") for w in warns):
             who = [n for n, c in (("camera", cal_c), ("projector", cal_p)) if not c.used[i]]
             warns.append(f"pose {names[i]}: too few markers seen by the {' and '.join(who)}; "
                          "pose not used")
@@ -1154,7 +1154,7 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
     P = np.stack([c.ravel() * float(target.pitch_mm), r.ravel() * float(target.pitch_mm),
                   np.zeros(r.size)], axis=1)
     dark = getattr(target, "circles", "dark-on-light") == "dark-on-light"
-    names, cam_obs, proj_obs, warns = [], [], [], []
+    names, cam_obs, proj_obs, warns, good = [], [], [], [], []
     cam_size = proj_size = None
     for done, (name, scan) in enumerate(scans, start=1):
         man = scan.manifest
@@ -1173,6 +1173,10 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
         det = detect_circle_grid(image, rows=rows, cols=cols, dark=dark)
         if not det:
             warns.append(f"pose {name}: skipped, {det.reason}")
+            names.append(str(name))
+            cam_obs.append(np.full((rows * cols, 2), np.nan))
+            proj_obs.append(np.full((rows * cols, 2), np.nan))
+            good.append(False)
             if progress is not None:
                 progress(done, name)
             continue
@@ -1183,14 +1187,18 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
         names.append(str(name))
         cam_obs.append(np.where(det.found[:, None], det.centers, np.nan))
         proj_obs.append(pobs.uv)
+        good.append(True)
         if progress is not None:
             progress(done, name)
     if reference_pose not in names:
+        raise CalibrationError(f"reference pose {reference_pose} is not among the scans; the "
+                               "world frame is the target at the reference pose")
+    if not good[names.index(reference_pose)]:
         raise CalibrationError(f"reference pose {reference_pose}: grid not found "
-                               f"({'; '.join(warns) or 'pose missing'}); the world frame is "
-                               "the target at the reference pose")
-    if len(names) < min_poses:
-        raise CalibrationError(f"only {len(names)} good pose(s), at least {min_poses} needed"
+                               f"({'; '.join(warns)}); the world frame is the target at the "
+                               "reference pose")
+    if sum(good) < min_poses:
+        raise CalibrationError(f"only {sum(good)} good pose(s), at least {min_poses} needed"
                                + (f" ({'; '.join(warns)})" if warns else ""))
     return calibrate_rig(P, np.array(cam_obs), np.array(proj_obs),
                          camera_pixel_size=camera_pixel_size,

@@ -1,10 +1,209 @@
-"""`telefringe calibrate` command(s)."""
+"""`telefringe calibrate`: a calibration set folder -> rig.json (+ report plots)."""
 
 from __future__ import annotations
 
+from enum import StrEnum
+from pathlib import Path
+
+import numpy as np
 import typer
+
+from ._common import console, detail, info, progress_bar, state
+
+__all__ = ["register", "write_report", "parameter_table"]
+
+
+class _Side(StrEnum):
+    left = "left"
+    right = "right"
+    top = "top"
+    bottom = "bottom"
+
+
+class _PP(StrEnum):
+    estimate = "estimate"
+    fixed = "fixed"
+
+
+_UNITS = {"m": "", "u0": "px", "v0": "px", "k1": "1/mm^2", "s1": "1/mm", "s2": "1/mm",
+          "rot_x": "rad", "rot_y": "rad", "rot_z": "rad", "tx": "mm", "ty": "mm"}
+
+
+def _fmt(v: float, s: float) -> str:
+    if not np.isfinite(s):
+        return f"{v:.6g} (fixed)"
+    return f"{v:.6g} ± {s:.2g}"
+
+
+def parameter_table(calib):
+    """A rich Table of both devices' parameters with their standard deviations."""
+    from rich.table import Table
+
+    from ..calibrate import INTRINSIC_NAMES
+
+    table = Table(title="rig parameters (± one standard deviation)")
+    table.add_column("parameter")
+    table.add_column("unit")
+    table.add_column("camera", justify="right")
+    table.add_column("projector", justify="right")
+    p, s = calib.parameters, calib.std
+    for j, name in enumerate(INTRINSIC_NAMES):
+        table.add_row(name, _UNITS[name], _fmt(p[j], s[j]), _fmt(p[11 + j], s[11 + j]))
+    rc, rp = calib.rig.camera.rotvec, calib.rig.projector.rotvec
+    for j, ax in enumerate("xyz"):
+        table.add_row(f"rotation vector {ax}", "rad",
+                      _fmt(rc[j], s[6 + j]), _fmt(rp[j], s[17 + j]))
+    for j, name in enumerate(("tx", "ty")):
+        table.add_row(name, "mm", _fmt(p[9 + j], s[9 + j]), _fmt(p[20 + j], s[20 + j]))
+    table.add_row("RMS reprojection", "px", f"{calib.rms_camera:.4f}",
+                  f"{calib.rms_projector:.4f}")
+    return table
+
+
+def _pose_table(calib):
+    from rich.table import Table
+
+    table = Table(title="per-pose RMS reprojection error (px)")
+    table.add_column("pose")
+    table.add_column("camera", justify="right")
+    table.add_column("projector", justify="right")
+    for i, name in enumerate(calib.pose_names):
+        if calib.used[i]:
+            c, p = calib.rms_per_pose[i]
+            table.add_row(name + (" (reference)" if name == calib.reference_pose else ""),
+                          f"{c:.4f}", f"{p:.4f}")
+        else:
+            table.add_row(name, "not used", "not used")
+    return table
+
+
+def write_report(folder: Path, calib) -> list[str]:
+    """Residual plots (PNG) of a calibration into an existing ``folder``; returns names."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = []
+    for dev, obs, res, size in (
+            ("camera", calib.camera_observations, calib.residuals_camera,
+             (calib.rig.camera.intrinsics.width, calib.rig.camera.intrinsics.height)),
+            ("projector", calib.projector_observations, calib.residuals_projector,
+             (calib.rig.projector.intrinsics.width, calib.rig.projector.intrinsics.height))):
+        ok = np.all(np.isfinite(res), axis=2) & np.all(np.isfinite(obs), axis=2)
+        o, r = obs[ok], res[ok]
+        fig, ax = plt.subplots(figsize=(8, 6.5))
+        if r.size:
+            scale = float(np.percentile(np.hypot(r[:, 0], r[:, 1]), 95)) or 1.0
+            q = ax.quiver(o[:, 0], o[:, 1], r[:, 0], r[:, 1], np.hypot(r[:, 0], r[:, 1]),
+                          angles="xy", scale_units="xy", scale=scale / (0.04 * size[0]),
+                          cmap="viridis")
+            fig.colorbar(q, ax=ax, label="residual length (px)")
+        ax.set_xlim(0, size[0])
+        ax.set_ylim(size[1], 0)
+        ax.set_aspect("equal")
+        ax.set_xlabel("u (px)")
+        ax.set_ylabel("v (px)")
+        ax.set_title(f"{dev}: reprojection residuals (predicted - observed), exaggerated; "
+                     f"RMS {getattr(calib, 'rms_' + dev):.4f} px", fontsize=9)
+        fname = f"residuals_{dev}.png"
+        fig.savefig(folder / fname, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        names.append(fname)
+        fig, axs = plt.subplots(1, 2, figsize=(9, 3.5))
+        for k, (ax, lab) in enumerate(zip(axs, ("du", "dv"), strict=True)):
+            if r.size:
+                ax.hist(r[:, k], bins=40, color="tab:blue")
+            ax.set_xlabel(f"{lab} (px)")
+        axs[0].set_ylabel("count")
+        fig.suptitle(f"{dev}: residual distribution")
+        fname = f"histogram_{dev}.png"
+        fig.savefig(folder / fname, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        names.append(fname)
+    fig, ax = plt.subplots(figsize=(max(6, 0.5 * len(calib.pose_names) + 2), 3.5))
+    x = np.arange(len(calib.pose_names))
+    ax.bar(x - 0.2, calib.rms_per_pose[:, 0], 0.4, label="camera")
+    ax.bar(x + 0.2, calib.rms_per_pose[:, 1], 0.4, label="projector")
+    ax.set_xticks(x, calib.pose_names, rotation=60, fontsize=8)
+    ax.set_ylabel("RMS reprojection error (px)")
+    ax.legend()
+    fig.savefig(folder / "rms_per_pose.png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    names.append("rms_per_pose.png")
+    return names
+
+
+def calibrate_cmd(
+    calib_dir: Path = typer.Argument(..., help="Calibration set folder (with calibration.json)."),
+    output: Path = typer.Option(..., "-o", "--output", help="rig.json to write."),
+    report: Path | None = typer.Option(None, "--report",
+                                       help="Folder to create with residual plots (PNG)."),
+    projector_side: _Side | None = typer.Option(
+        None, "--projector-side",
+        help="Where the projector is, seen in the camera image (shadows fall away from it). "
+             "A flat target cannot tell a rig from its mirror image (heights of opposite "
+             "sign); without this option a convention decides and a warning says so."),
+    principal_point: _PP = typer.Option(
+        _PP.estimate, "--principal-point",
+        help="estimate: free with a weak prior at the image centre; fixed: at the centre."),
+    gamma: bool = typer.Option(True, "--gamma/--no-gamma",
+                               help="Remove the projector gamma's phase error when decoding "
+                                    "(slower; 4-step fringes barely need it)."),
+    force: bool = typer.Option(False, "--force", help="Replace OUTPUT (and the report)."),
+):
+    """Calibrate camera and projector from a calibration set (one scan per plate pose).
+
+    Detects the circle grid in each pose, reads the projector coordinates of each circle
+    centre from the decoded fringes, calibrates both devices and adjusts them jointly.
+    Poses whose grid cannot be found are skipped with a warning.
+
+    Example: telefringe calibrate sim_cal/calibration -o rig.json --report cal_report
+    """
+    from ..calibrate import CalibrationError, calibrate_from_scans
+    from ..io.atomic import atomic_dir, check_can_write
+    from ..io.errors import InputError
+    from ..io.rig import save_rig
+    from ..io.scan import load_calibration_set, read_scan
+
+    check_can_write(output, force=force)
+    if report is not None:
+        check_can_write(report, force=force)
+    man = load_calibration_set(calib_dir)
+    detail(f"{len(man.poses)} poses, target {man.target.rows} x {man.target.cols} at "
+           f"{man.target.pitch_mm} mm, reference {man.reference_pose}")
+    with progress_bar("calibration poses", len(man.poses)) as advance:
+        def scans():
+            for name in man.poses:
+                yield name, read_scan(Path(calib_dir) / name)
+                advance()
+
+        try:
+            calib = calibrate_from_scans(
+                scans(), man.target, man.camera_pixel_size, man.projector_pixel_size,
+                man.reference_pose, projector_side=None if projector_side is None
+                else projector_side.value, principal_point=principal_point.value,
+                decode_options={"gamma_correction": bool(gamma)})
+        except CalibrationError as exc:
+            raise InputError(f"{calib_dir}: {exc}") from None
+    for w in calib.warnings:
+        info(f"[yellow]warning:[/yellow] {w}")
+    if not state.quiet:
+        console.print(parameter_table(calib))
+        console.print(_pose_table(calib))
+    if calib.outliers:
+        info(f"{len(calib.outliers)} observation(s) rejected as outliers:")
+        for o in calib.outliers:
+            info(f"  {o.device} {o.pose} marker (row {o.marker[0]}, col {o.marker[1]}): "
+                 f"residual ({o.residual[0]:+.3f}, {o.residual[1]:+.3f}) px")
+    save_rig(output, calib, force=force)
+    info(f"wrote {output}")
+    if report is not None:
+        with atomic_dir(report, force=force) as tmp:
+            names = write_report(Path(tmp), calib)
+        info(f"wrote {report}/ ({', '.join(names)})")
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's command(s) to the app (filled in by the calibrate work)."""
-    del app
+    """Add ``calibrate`` to the app."""
+    app.command("calibrate")(calibrate_cmd)
