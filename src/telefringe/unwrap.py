@@ -352,6 +352,16 @@ def unwrap_number_theoretic(phases: Sequence, periods: Sequence[int], *, length:
         raise LadderError(f"periods {per} are not coprime enough: two fringe orders give "
                           "the same phases, the projector width is not covered uniquely")
     tol = max_fraction * sep / 2.0
+    # where two groups' orders change within the noise of each other, the measured
+    # phases may show a combination that no exact x gives: add, for neighbouring
+    # candidates (one or two apart), every mixture of their components
+    extra = [cands]
+    for gap in (1, 2):
+        a, b = cands[:-gap], cands[gap:]
+        for mask in range(1, 2 ** len(per) - 1):
+            pick = np.array([(mask >> i) & 1 for i in range(len(per))], dtype=bool)
+            extra.append(np.where(pick[None, :], b, a))
+    cands = np.unique(np.concatenate(extra), axis=0)
     shape = ph[0].shape
     flat = np.stack([q.ravel() for q in ph], axis=1)
     n = flat.shape[0]
@@ -368,8 +378,16 @@ def unwrap_number_theoretic(phases: Sequence, periods: Sequence[int], *, length:
         j = np.argmin(d2, axis=1)
         best_k[s:s + chunk] = cands[j]
         best_d[s:s + chunk] = np.sqrt(d2[np.arange(len(j)), j])
-    # estimates left of the projector (x < -0.5) are the wrap-around of its right edge
+    # refine each order against the fitted line: near places where two groups' orders
+    # change within the noise of each other the right combination is not among the
+    # candidates (it occurs for no exact x), but its neighbour is
     t = sum(p[i] * (flat[:, i] + TWO_PI * best_k[:, i]) for i in range(len(per))) / (p @ p)
+    for i in range(len(per)):
+        best_k[:, i] = np.round((p[i] * t - flat[:, i]) / TWO_PI).astype(np.int64)
+    t = sum(p[i] * (flat[:, i] + TWO_PI * best_k[:, i]) for i in range(len(per))) / (p @ p)
+    resid = flat + TWO_PI * best_k - np.outer(t, p)
+    best_d = np.sqrt(np.sum(resid ** 2, axis=1))
+    # estimates left of the projector (x < -0.5) are the wrap-around of its right edge
     best_k += (t * length / TWO_PI < -0.5)[:, None].astype(np.int64) * np.asarray(per)[None, :]
     absolute = tuple((flat[:, i] + TWO_PI * best_k[:, i]).reshape(shape)
                      for i in range(len(per)))
@@ -506,7 +524,7 @@ def unwrap_gray(phase, images, threshold, *, bits: int, complementary: bool, len
     length = _check_length(length)
     need = bits + (1 if complementary else 0)
     imgs = np.asarray(images)
-    if imgs.ndim != 3 or imgs.shape[0] != need:
+    if imgs.ndim < 2 or imgs.shape[0] != need:
         raise ValueError(f"Gray code with {bits} bits{' + complementary' if complementary else ''}"
                          f" needs {need} images, got stack of shape {imgs.shape}")
     code = decode_gray(imgs, threshold)
