@@ -356,14 +356,14 @@ def test_outliers_are_rejected_and_reported(scene):
 
 
 def test_uncertainty_matches_monte_carlo():
-    """The covariance's standard deviations against the spread of 30 noisy repeats
+    """The covariance's standard deviations against the spread of 20 noisy repeats
     (small grid and few poses for speed)."""
     rng = np.random.default_rng(2024)
     rig = paper_like_rig()
     P = grid_points(5, 6, pitch=5.0)
     Rs, Ts = target_poses(6, rng, tilt_deg=15.0, centre=(12.5, 10.0, 0.0))
     errs, stds = [], []
-    for _ in range(30):
+    for _ in range(20):
         cam, proj = observe(rig, P, Rs, Ts, rng)
         cal = calibrate_rig(P, cam, proj, camera_pixel_size=CAM_PIX,
                             projector_pixel_size=PROJ_PIX, camera_size=CAM_SIZE,
@@ -373,11 +373,11 @@ def test_uncertainty_matches_monte_carlo():
         stds.append(cal.std)
     errs, stds = np.array(errs), np.array(stds)
     ratio = errs.std(axis=0) / stds.mean(axis=0)
-    # sampling error of a standard deviation from 30 samples: about 13 %
-    assert np.all((ratio > 0.6) & (ratio < 1.5)), dict(zip(RIG_PARAMETER_NAMES, ratio,
-                                                           strict=True))
+    # sampling error of a standard deviation from 20 samples: about 16 % (bounds ~3.5 of it)
+    assert np.all((ratio > 0.55) & (ratio < 1.6)), dict(zip(RIG_PARAMETER_NAMES, ratio,
+                                                            strict=True))
     z2 = np.mean((errs / stds) ** 2)
-    assert 0.75 < z2 < 1.3
+    assert 0.7 < z2 < 1.35
 
 
 # --------------------------------------------------------------------------- degenerate
