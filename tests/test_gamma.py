@@ -94,7 +94,7 @@ def test_four_steps_residual_at_noise_floor(fast_rig):
     assert 0.008 < m1.peak < 0.016
 
 
-def _ladder_phases(steps, gamma, rng, n=60000, sigma=0.01):
+def _ladder_phases(steps, gamma, rng, n=30000, sigma=0.01):
     """Synthetic measured phases of the 1, 8, 64 ladder for random projector x."""
     x = rng.uniform(0, 1, n)
     out = []

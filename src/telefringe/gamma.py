@@ -425,7 +425,8 @@ def _solve(samp, per, harm, pairs, iterations, reject):
     ata = np.eye(n_par)
     chi2 = 0.0
     for it in range(max(2, iterations + 2)):
-        est = [m.correct(x) if np.any(m.cos_coef) or np.any(m.sin_coef) else x
+        # true-phase estimates by Newton on the samples themselves (no table needed)
+        est = [_wrap(m._invert(x)) if np.any(m.cos_coef) or np.any(m.sin_coef) else x
                for m, x in zip(models, samp, strict=True)]
         gain = [1.0 / (1.0 + m.slope(e)) for m, e in zip(models, est, strict=True)]
         ata = np.zeros((n_par, n_par))
