@@ -274,6 +274,25 @@ def test_sphere_uncertainty_matches_monte_carlo():
     assert abs(np.mean(rs) - 3.0) < 4 * np.mean(sr) / np.sqrt(trials)
 
 
+def test_sphere_fixed_radius():
+    p = cap_points(30, max_polar_deg=20, sigma=0.003, seed=8)
+    free = fit_sphere(p)
+    fixed = fit_sphere(p, radius=3.0)
+    # a 20 deg cap of 30 points hardly determines the radius; with it fixed the centre
+    # is within 4 sigma
+    assert free.sigma_radius > 10 * fixed.sigma_centre[2]
+    assert fixed.radius == 3.0 and fixed.covariance[3, 3] == 0.0
+    assert np.all(np.abs(fixed.centre - [1.0, -2.0, 0.3]) < 4 * fixed.sigma_centre + 1e-12)
+    with pytest.raises(MetrologyError, match="radius"):
+        fit_sphere(p, radius=-1.0)
+    # robust rounds that end before agreeing still return a consistent fit
+    rng = np.random.default_rng(2)
+    q = cap_points(60, sigma=0.01, seed=9)
+    q[rng.choice(60, 10, replace=False)] += 0.05
+    f1 = fit_sphere(q, robust=True, max_rounds=1)
+    assert f1.n_inliers == 60 and f1.inliers.sum() == 60
+
+
 def test_sphere_robust():
     rng = np.random.default_rng(3)
     p = cap_points(2000, sigma=0.002, seed=4)
@@ -402,6 +421,19 @@ def test_bga_centres_from_highlights():
     assert np.allclose(m1.height, m0.height, atol=1e-6)
     with pytest.raises(MetrologyError, match="shape"):
         measure_bga(cloud, nom, image=img[:-1])
+
+
+def test_bga_small_balls():
+    """Balls 7 pixels wide (a binned camera): the nominal radius steps in, no erosion."""
+    cloud, present, offs, apex = bga_cloud(sigma=0.004, seed=5)
+    # resample the synthetic scene at a coarser pixel: every second pixel
+    xyz = cloud.xyz[::2, ::2]
+    small = PointCloud.from_xyz(xyz, sigma_z=np.full(xyz.shape[:2], 0.004))
+    nom = BGANominal(rows=6, cols=7, pitch_mm=0.8, ball_diameter_mm=0.45)
+    m = measure_bga(small, nom)
+    assert np.array_equal(m.found, present)
+    e = m.height - (0.35 + offs)[present]
+    assert np.all(np.abs(e) < 4 * m.sigma_height + 1e-4)
 
 
 def test_bga_grid_from_the_balls():

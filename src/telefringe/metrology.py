@@ -669,28 +669,44 @@ def _sphere_algebraic(p: np.ndarray, w: np.ndarray):
     return c + m, float(np.sqrt(r2))
 
 
+def _sphere_start_fixed(p: np.ndarray, w: np.ndarray, r: float) -> np.ndarray:
+    """Start for a fixed-radius fit of a cap seen from the camera side: below the top
+    of the points (the mean of their highest quarter along the normal of their plane)
+    by r. (An algebraic start is unreliable on the few points of a small cap.)"""
+    n, c, _ = _tls_plane(np.ascontiguousarray(p.T), w)
+    h = (p - c) @ n
+    top = p[h >= np.percentile(h, 75)]
+    return top.mean(axis=0) - r * n
+
+
 def _sphere_geometric(p: np.ndarray, w: np.ndarray, c: np.ndarray, r: float,
-                      max_iter: int = 100):
-    """Levenberg-Marquardt on the radial residuals |p - c| - r."""
+                      max_iter: int = 100, *, fixed_radius: bool = False):
+    """Levenberg-Marquardt on the radial residuals |p - c| - r (r fixed if asked)."""
     sw = np.sqrt(w)
     x = np.concatenate([c, [r]])
     lam = 1e-3
+    npar = 3 if fixed_radius else 4
 
     def resid(x):
         d = p - x[:3]
         dist = np.sqrt(np.sum(d * d, axis=1))
         return dist - x[3], d, dist
 
+    def jac(d, dist):
+        J = np.column_stack([-d / dist[:, None], -np.ones(p.shape[0])]) * sw[:, None]
+        return J[:, :npar]
+
     f, d, dist = resid(x)
     cost = float(np.sum(w * f * f))
     for _ in range(max_iter):
-        J = np.column_stack([-d / dist[:, None], -np.ones(p.shape[0])]) * sw[:, None]
+        J = jac(d, dist)
         fw = f * sw
         H = J.T @ J
         g = J.T @ fw
         improved = False
         for _ in range(20):
-            step = -np.linalg.solve(H + lam * np.diag(np.diag(H)), g)
+            step = np.zeros(4)
+            step[:npar] = -np.linalg.solve(H + lam * np.diag(np.diag(H)), g)
             xn = x + step
             fn, dn, distn = resid(xn)
             cn = float(np.sum(w * fn * fn))
@@ -705,12 +721,11 @@ def _sphere_geometric(p: np.ndarray, w: np.ndarray, c: np.ndarray, r: float,
         if np.linalg.norm(step) <= 1e-12 * (1.0 + np.linalg.norm(x)) or (
                 cost_old - cost) <= 1e-15 * max(cost_old, 1e-300):
             break
-    J = np.column_stack([-d / dist[:, None], -np.ones(p.shape[0])]) * sw[:, None]
-    return x[:3], float(x[3]), f, J
+    return x[:3], float(x[3]), f, jac(d, dist)
 
 
 def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 4.0,
-               max_rounds: int = 5) -> SphereFit:
+               max_rounds: int = 5, radius: float | None = None) -> SphereFit:
     """Fit a sphere: algebraic (Kasa) start, then geometric least squares.
 
     Parameters
@@ -720,6 +735,9 @@ def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 
     robust : bool
         Repeat the fit without points whose radial residual is beyond ``reject_k``
         robust standard deviations (MAD), up to ``max_rounds`` times.
+    radius : float, optional
+        Fit the centre only, with this radius (mm): for small caps whose curvature the
+        points do not determine (then ``covariance``'s radius row and column are 0).
 
     Returns
     -------
@@ -748,12 +766,21 @@ def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 
         raise MetrologyError(f"a sphere needs at least 4 points, got {idx.size}")
     pf = p[idx]
     wf = w0[idx] / w0[idx].mean()
+    fixed = radius is not None
+    if fixed and not (np.isfinite(radius) and radius > 0):
+        raise MetrologyError(f"radius must be > 0, got {radius!r}")
     keep = np.ones(idx.size, dtype=bool)
     for _ in range(max_rounds if robust else 1):
         if np.count_nonzero(keep) < 5:
             raise MetrologyError("robust sphere fit: fewer than 5 inliers")
-        c0, r0 = _sphere_algebraic(pf[keep], wf[keep])
-        c, r, f, J = _sphere_geometric(pf[keep], wf[keep], c0, r0)
+        if fixed:
+            c0 = _sphere_start_fixed(pf[keep], wf[keep], float(radius))
+            c, r, f, J = _sphere_geometric(pf[keep], wf[keep], c0, float(radius),
+                                           fixed_radius=True)
+        else:
+            c0, r0 = _sphere_algebraic(pf[keep], wf[keep])
+            c, r, f, J = _sphere_geometric(pf[keep], wf[keep], c0, r0)
+        fitted = keep
         if not robust:
             break
         res_all = np.linalg.norm(pf - c, axis=1) - r
@@ -762,14 +789,16 @@ def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 
         if np.array_equal(new_keep, keep):
             break
         keep = new_keep
+    keep = fitted  # the points of the last fit (the rounds may end before agreement)
     if not (np.isfinite(r) and r > 0 and np.all(np.isfinite(c))):
         raise MetrologyError("the sphere fit did not converge")
     wk = wf[keep]
     nk = int(np.count_nonzero(keep))
-    dof = max(nk - 4, 1)
+    dof = max(nk - J.shape[1], 1)
     s2 = float(np.sum(wk * f * f) / dof)
+    cov = np.zeros((4, 4))
     try:
-        cov = s2 * np.linalg.inv(J.T @ J)
+        cov[:J.shape[1], :J.shape[1]] = s2 * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         raise MetrologyError("the sphere is not determined by these points") from None
     inliers = np.zeros(n_all, dtype=bool)
@@ -965,7 +994,8 @@ class BGAMeasurement:
     apex : (n, 3) world mm, top of the ball (farthest from the substrate).
     height : (n,) mm, apex height above the substrate plane.
     sigma_height : (n,) mm, its standard uncertainty.
-    diameter : (n,) mm, of the fitted sphere.
+    diameter : (n,) mm, of the fitted sphere; NaN where the cap did not determine it
+        (the fit then used the nominal diameter).
     position : (n, 2) mm, ball centre on the substrate plane, in the grid's frame
         (x' along the columns, y' along the rows, origin at the grid's first position).
     rms : (n,) mm, RMS radial residual of the cap fit.   n_points : (n,) int.
@@ -1192,16 +1222,19 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
 
 
 def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
-                min_height: float | None = None, min_fraction: float = 0.2, edge_px: int = 1,
-                cap_min_height: float | None = None, seed: int = 0) -> BGAMeasurement:
+                min_height: float | None = None, min_fraction: float = 0.2,
+                edge_px: int | None = None, cap_min_height: float | None = None,
+                seed: int = 0) -> BGAMeasurement:
     """Inspect a ball grid array from its point cloud.
 
     Steps: the substrate plane is fitted robustly (the balls are outliers); pixels more
     than ``min_height`` (default 0.2 ball diameters) above it form connected regions,
     one per ball (regions smaller than ``min_fraction`` of a ball's footprint are
     ignored); each region, shrunk by ``edge_px`` pixels (silhouette pixels mix ball and
-    substrate), keeping points higher than ``cap_min_height`` (default 0.3 ball
-    diameters, above the shadowed flank), is fitted with a sphere (robust); the apex is
+    substrate; default 1 when a ball is at least 10 pixels wide, else 0: on small balls
+    the points are too few to spare), keeping points higher than ``cap_min_height``
+    (default 0.3 ball diameters, above the shadowed flank), is fitted with a sphere
+    (robust; with the nominal radius when the cap does not determine it); the apex is
     the sphere's point farthest from the substrate. Balls are then registered on the
     nominal grid (its rotation and offset found from the balls themselves), which gives
     the missing balls, the pitch between neighbours and the JEDEC seating-plane
@@ -1244,10 +1277,13 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
     step = np.linalg.norm(np.diff(pts_all[:, :, :2], axis=1), axis=2)
     px_mm = float(np.nanmedian(step)) if np.any(np.isfinite(step)) else np.nan
     foot = np.pi * (D / 2) ** 2 / px_mm**2 if np.isfinite(px_mm) else 0.0
+    if edge_px is None:
+        edge_px = 1 if (np.isfinite(px_mm) and D / px_mm >= 10.0) else 0
     sizes = np.bincount(labels.ravel(), minlength=n_lab + 1)
     slices = ndimage.find_objects(labels)
     fits = []
     regions = []
+    free_r = []
     for lab in range(1, n_lab + 1):
         if sizes[lab] < max(min_fraction * foot, 8):
             continue
@@ -1260,13 +1296,23 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
         pts = cloud.xyz[sl][sel]
         if pts.shape[0] < 10:
             continue
+        # free radius when the cap determines it; else the nominal radius (small caps:
+        # a few pixels across at low resolution), and no diameter is reported
+        f = None
         try:
             f = fit_sphere(pts, robust=True)
+            if not (0.7 * D < f.diameter < 1.4 * D and f.sigma_radius < 0.05 * D):
+                f = None
         except MetrologyError:
-            continue
-        if not (0.25 * D < f.diameter < 4.0 * D):
-            continue
+            f = None
+        free = f is not None
+        if f is None:
+            try:
+                f = fit_sphere(pts, robust=True, radius=D / 2)
+            except MetrologyError:
+                continue
         fits.append(f)
+        free_r.append(free)
         regions.append((sl, labels[sl] == lab))
     if not fits:
         raise MetrologyError("no ball could be fitted")
@@ -1321,7 +1367,9 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
         index=np.argwhere(found), centre=centre[sel],
         sigma_centre=sig_c[sel], refined=refined[sel],
         apex=apex[sel], height=height[sel],
-        sigma_height=sig_h[sel], diameter=2.0 * radius[sel], position=local,
+        sigma_height=sig_h[sel],
+        diameter=np.where(np.asarray(free_r)[sel], 2.0 * radius[sel], np.nan),
+        position=local,
         rms=np.array([fits[k].rms for k in sel]),
         n_points=np.array([fits[k].n_inliers for k in sel], dtype=np.int64),
         substrate=substrate, found=found, missing=missing, unexpected=unexpected,

@@ -190,7 +190,9 @@ def bga_cmd(
          f"{', '.join(f'({i},{j})' for i, j in m.missing) or 'none'}")
     info(f"apex height: mean {np.mean(m.height):.4f} mm, min {np.min(m.height):.4f}, max "
          f"{np.max(m.height):.4f} (median sigma {_um(np.median(m.sigma_height))})")
-    info(f"diameter: mean {np.mean(m.diameter):.4f} mm")
+    if np.any(np.isfinite(m.diameter)):
+        info(f"diameter: mean {np.nanmean(m.diameter):.4f} mm "
+             f"({int(np.isfinite(m.diameter).sum())} balls large enough in the image)")
     info(f"pitch: largest error {_um(m.pitch_error_max)}")
     info(f"coplanarity (JEDEC seating plane): {_um(m.coplanarity.value)}")
     write_bga_csv(csv_path, m, force=force)

@@ -567,7 +567,9 @@ def bga_summary(m) -> dict:
         "seating_contacts": [list(map(int, m.index[k])) for k in m.coplanarity.contacts],
         "height_mean_mm": _f(np.mean(m.height)), "height_min_mm": _f(np.min(m.height)),
         "height_max_mm": _f(np.max(m.height)),
-        "diameter_mean_mm": _f(np.mean(m.diameter)),
+        "diameter_mean_mm": (_f(np.nanmean(m.diameter)) if np.any(np.isfinite(m.diameter))
+                             else None),
+        "diameters_measured": int(np.count_nonzero(np.isfinite(m.diameter))),
         "pitch_mean_mm": _f(np.mean(fin)) if fin.size else None,
         "pitch_std_mm": _f(np.std(fin, ddof=1)) if fin.size > 1 else None,
         "pitch_error_max_mm": _f(m.pitch_error_max),
