@@ -1230,7 +1230,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
     Steps: the substrate plane is fitted robustly (the balls are outliers); pixels more
     than ``min_height`` (default 0.2 ball diameters) above it form connected regions,
     one per ball (regions smaller than ``min_fraction`` of a ball's footprint are
-    ignored); each region, shrunk by ``edge_px`` pixels (silhouette pixels mix ball and
+    ignored, and so are regions too large or too wide for one ball); each region, shrunk
+    by ``edge_px`` pixels (silhouette pixels mix ball and
     substrate; default 1 when a ball is at least 10 pixels wide, else 0: on small balls
     the points are too few to spare), keeping points higher than ``cap_min_height``
     (default 0.3 ball diameters, above the shadowed flank), is fitted with a sphere
@@ -1288,6 +1289,10 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
         if sizes[lab] < max(min_fraction * foot, 8):
             continue
         sl = slices[lab - 1]
+        # a ball is compact: no wider than twice its diameter, no larger than 3 footprints
+        if np.isfinite(px_mm) and (max(sl[0].stop - sl[0].start, sl[1].stop - sl[1].start)
+                                   > 2.0 * D / px_mm + 2 or sizes[lab] > 3.0 * foot + 10):
+            continue
         reg = labels[sl] == lab
         if edge_px > 0:
             reg = ndimage.binary_erosion(reg, iterations=int(edge_px))
@@ -1310,6 +1315,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
             try:
                 f = fit_sphere(pts, robust=True, radius=D / 2)
             except MetrologyError:
+                continue
+            if not f.rms < 0.1 * D:  # not a cap of the nominal ball
                 continue
         fits.append(f)
         free_r.append(free)
