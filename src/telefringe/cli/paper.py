@@ -170,11 +170,26 @@ def demo(
 
 
 def _demo_report(out: Path, bga: dict, plate: dict, elapsed: float) -> None:
-    info("\n[bold]Demo report[/bold] (virtual rig; the truth is in "
+    import json
+
+    def um(x):
+        return "n/a" if not isinstance(x, int | float) else f"{x * 1000:.2f} um"
+
+    truth = {}
+    tfile = out / "simulated" / "bga" / "truth" / "scan.json"
+    if tfile.is_file():
+        truth = json.loads(tfile.read_text())
+    info("\n[bold]Demo report[/bold] (virtual rig; the truth is kept apart in "
          f"{out / 'simulated'}/*/truth)")
-    info(f"  plate raised 0.5 mm: measured {json_get(plate, 'z', 'distance_mm')}")
-    info(f"  BGA: {json_get(bga, 'n_balls')} balls, missing {json_get(bga, 'missing')}, "
-         f"coplanarity {json_get(bga, 'coplanarity', 'value_mm')}")
+    z = json_get(plate, "z_mm")
+    info(f"  plate raised by 0.5 mm: measured Z {z if isinstance(z, str) else f'{z:+.5f} mm'}"
+         f" (error {um(abs(z - 0.5)) if not isinstance(z, str) else 'n/a'}); neighbour "
+         f"distance std X {um(json_get(plate, 'spacing', 'std_x_mm'))}, "
+         f"Y {um(json_get(plate, 'spacing', 'std_y_mm'))}")
+    info(f"  BGA: {json_get(bga, 'balls_found')} balls found, missing "
+         f"{json_get(bga, 'missing')} (truth {truth.get('missing', 'n/a')}), largest pitch "
+         f"error {um(json_get(bga, 'pitch_error_max_mm'))}, coplanarity "
+         f"{um(json_get(bga, 'coplanarity_mm'))}")
     info(f"  outputs: {out}/rig.json, {out}/calibration-report/, {out}/bga/ (points.npz, "
          f"cloud.ply, heightmap.tif/png, bga.csv, bga.png), {out}/plate/")
     info(f"  total time {elapsed:.0f} s")

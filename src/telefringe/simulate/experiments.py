@@ -290,7 +290,9 @@ def run_bga(vrig: VirtualRig, rig: Rig, *, seed: int = 0, hdr: bool = True) -> B
     # the design: every grid position populated; absent balls must be reported missing
     nominal = BGANominal(rows=bga.rows, cols=bga.cols, pitch_mm=bga.pitch,
                          ball_diameter_mm=bga.ball_diameter)
-    meas = measure_bga(rec.cloud, nominal, seed=seed)
+    # balls located by their specular highlights in the HDR radiance image (the offset
+    # of highlight from ball centre is common to all balls: telecentric, collimated)
+    meas = measure_bga(rec.cloud, nominal, image=rec.radiance, seed=seed)
 
     # the truth, indexed like the measurement
     true_centres = bga.centres_world()
