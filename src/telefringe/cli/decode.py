@@ -78,6 +78,14 @@ def decode_cmd(
         if msg.startswith(f"{data.source}: "):
             msg = msg[len(data.source) + 2:]
         raise InputError(f"{scan}: {msg}") from None
+    for ax, r in coords.axes.items():
+        if not r.valid.any():  # an all-invalid coordinate file is no result: say why
+            if r.low_modulation.all():
+                mm = 0.02 * float(data.max_value) if min_modulation is None else min_modulation
+                raise InputError(f"{scan}: no pixel shows the fringes on axis {ax} (modulation "
+                                 f"below {mm:.3g} DN everywhere): is the projector on, the "
+                                 "scene lit and the exposure long enough?")
+            raise InputError(f"{scan}: no pixel could be decoded on axis {ax}")
     write_coords(output, coords, force=force)
     for ax, r in coords.axes.items():
         good = r.valid
