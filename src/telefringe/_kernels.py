@@ -431,3 +431,56 @@ def read_floor(stack):
                 acc += row[j]
         total += acc
     return total
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def invert_harmonic(measured, harmonics, cos_coef, sin_coef, out):
+    """Solve ``phi + e(phi) = measured`` per sample by Newton's method, where
+    ``e(phi) = sum_m cos_coef[m] cos(h_m phi) + sin_coef[m] sin(h_m phi)``.
+
+    ``measured`` and ``out`` are 1-D float64. Each sample starts at
+    ``measured - e(measured)`` and stops when its step is below 1e-14 rad (at most 60
+    steps). Returns False when ``1 + e'(phi) <= 0`` is met (the model is not invertible
+    there), True otherwise.
+    """
+    n = measured.size
+    hmax = 0
+    for m in range(harmonics.size):
+        if harmonics[m] > hmax:
+            hmax = harmonics[m]
+    ca = np.zeros(hmax + 1)
+    sa = np.zeros(hmax + 1)
+    for m in range(harmonics.size):
+        ca[harmonics[m]] += cos_coef[m]
+        sa[harmonics[m]] += sin_coef[m]
+    bad = np.zeros(n, dtype=np.bool_)
+    for i in nb.prange(n):
+        x = measured[i]
+        phi = x
+        for it in range(61):
+            c1 = math.cos(phi)
+            s1 = math.sin(phi)
+            c = 1.0
+            s = 0.0
+            e = 0.0
+            de = 0.0
+            for h in range(1, hmax + 1):
+                c, s = c * c1 - s * s1, s * c1 + c * s1
+                e += ca[h] * c + sa[h] * s
+                de += h * (sa[h] * c - ca[h] * s)
+            if it == 0:
+                phi = x - e  # the start, as e is evaluated at the measured phase
+                continue
+            d = 1.0 + de
+            if d <= 0.0:
+                bad[i] = True
+                break
+            step = (phi + e - x) / d
+            phi = phi - step
+            if abs(step) < 1e-14:
+                break
+        out[i] = phi
+    for i in range(n):
+        if bad[i]:
+            return False
+    return True
