@@ -17,6 +17,7 @@ def _um(x: float) -> str:
 
 
 def _print_tables(result) -> None:
+    from rich.console import Console
     from rich.table import Table
 
     from ..simulate.experiments import PAPER_TABLE3, PAPER_TABLE4
@@ -41,7 +42,9 @@ def _print_tables(result) -> None:
                       _um(p[3]), _um(p[4]), _um(p[5]), _um(p[6]), _um(p[7]), style="dim")
         t.add_row("", "[dim]truth[/dim]", "3.00000", "3.00000", f"{r.position:+.5f}",
                   "0", "0", "0", "0", "0", style="dim")
-    console.print(t)
+    wide = Console(width=max(console.width, 120), highlight=False,
+                   force_terminal=console.is_terminal)
+    wide.print(t)
     b = result.bga
     t4 = Table(title="Table 4: BGA (HDR), fitted centre distance of adjacent balls",
                title_justify="left")
@@ -51,7 +54,7 @@ def _print_tables(result) -> None:
         pd, pe = PAPER_TABLE4[k] if k < len(PAPER_TABLE4) else (float("nan"), float("nan"))
         t4.add_row(str(k + 1), f"{pair.a}-{pair.b}", f"{pair.distance:.5f}",
                    f"{pair.error * 1000:+.2f}", f"{pd:.3f}", f"{pe * 1000:+.0f}")
-    console.print(t4)
+    wide.print(t4)
     console.print(
         f"All {b.n_pairs} adjacent pairs: largest |pitch error| {b.pitch_error_max * 1000:.2f} "
         f"um. Apex height above the substrate: RMS error {b.apex_rms_error * 1000:.2f} um, "
