@@ -3,7 +3,7 @@
 Every output of telefringe goes through :func:`atomic_file` or :func:`atomic_dir`:
 
 - the content is written under a hidden temporary name beside the target
-  (``.NAME.XXXX.part``) and renamed onto the target only once it is complete, so a
+  (``.NAME.<random>.part``) and renamed onto the target only once it is complete, so a
   failed or interrupted run (an exception, Ctrl-C) leaves no partial output and the
   previous content untouched;
 - an existing output is refused unless ``force`` (the ``--force`` option), and without
