@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from ._distortion import undistort_point
 from .model import Rig, TelecentricDevice, undistort_sensor
 
 __all__ = [
@@ -570,7 +571,7 @@ def _undistort(xd, yd, k1, s1, s2):
     yu = np.empty_like(yd)
     worst = np.zeros(1)
     n_bad = _undistort_kernel(xd.reshape(-1), yd.reshape(-1), float(k1), float(s1), float(s2),
-                              1e-12, 50, xu.reshape(-1), yu.reshape(-1), worst)
+                              xu.reshape(-1), yu.reshape(-1), worst)
     if n_bad:
         # the model's own error message and checks
         return undistort_sensor(xd, yd, k1, s1, s2)
@@ -578,7 +579,7 @@ def _undistort(xd, yd, k1, s1, s2):
 
 
 @njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _undistort_kernel(xd, yd, k1, s1, s2, tol, max_iter, xu_out, yu_out,
+def _undistort_kernel(xd, yd, k1, s1, s2, xu_out, yu_out,
                       worst):  # pragma: no cover - numba
     n_bad = 0
     for i in prange(xd.shape[0]):
@@ -586,32 +587,9 @@ def _undistort_kernel(xd, yd, k1, s1, s2, tol, max_iter, xu_out, yu_out,
         y0 = yd[i]
         xu = x0
         yu = y0
-        # the residual cannot be smaller than the rounding of the forward model
-        thresh = max(tol, 64.0 * 2.220446049250313e-16 * (abs(x0) + abs(y0)))
         if np.isfinite(x0) and np.isfinite(y0):
-            for _ in range(max_iter):
-                r2 = xu * xu + yu * yu
-                fx = xu + k1 * xu * r2 + s1 * r2 - x0
-                fy = yu + k1 * yu * r2 + s2 * r2 - y0
-                a = 1.0 + k1 * (r2 + 2.0 * xu * xu) + 2.0 * s1 * xu
-                b = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
-                c = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
-                d = 1.0 + k1 * (r2 + 2.0 * yu * yu) + 2.0 * s2 * yu
-                det = a * d - b * c
-                xu = xu - (d * fx - b * fy) / det
-                yu = yu - (-c * fx + a * fy) / det
-                if abs(fx) + abs(fy) <= thresh:
-                    break
-            r2 = xu * xu + yu * yu
-            res = (abs(xu + k1 * xu * r2 + s1 * r2 - x0)
-                   + abs(yu + k1 * yu * r2 + s2 * r2 - y0))
-            # as the model: a root where the map is folded (det <= 0) or flipped
-            # (trace <= 0) is not the inverse
-            a = 1.0 + k1 * (r2 + 2.0 * xu * xu) + 2.0 * s1 * xu
-            b = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
-            c = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
-            d = 1.0 + k1 * (r2 + 2.0 * yu * yu) + 2.0 * s2 * yu
-            if not (res <= 10.0 * thresh and a * d - b * c > 0.0 and a + d > 0.0):
+            xu, yu, ok = undistort_point(x0, y0, k1, s1, s2)
+            if not ok:
                 n_bad += 1
         xu_out[i] = xu
         yu_out[i] = yu
