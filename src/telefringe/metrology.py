@@ -731,10 +731,12 @@ def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 
     Parameters
     ----------
     points : (n, 3) array_like of float, mm, or PointCloud; non-finite rows ignored.
-    weights : (n,) array_like, optional, relative weights.
+    weights : (n,) array_like, optional, relative weights (e.g. 1 / sigma_r^2, sigma_r
+        the standard uncertainty of each point along the sphere's radius).
     robust : bool
-        Repeat the fit without points whose radial residual is beyond ``reject_k``
-        robust standard deviations (MAD), up to ``max_rounds`` times.
+        Repeat the fit without points whose radial residual times sqrt(weight) is beyond
+        ``reject_k`` robust standard deviations (MAD) of these normalised residuals, up
+        to ``max_rounds`` times.
     radius : float, optional
         Fit the centre only, with this radius (mm): for small caps whose curvature the
         points do not determine (then ``covariance``'s radius row and column are 0).
@@ -783,8 +785,10 @@ def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 
         fitted = keep
         if not robust:
             break
-        res_all = np.linalg.norm(pf - c, axis=1) - r
-        scale = _MAD * np.median(np.abs(f)) + 1e-15
+        # residuals normalised by their weights (each point's own standard deviation
+        # when the weights are 1 / sigma^2)
+        res_all = (np.linalg.norm(pf - c, axis=1) - r) * np.sqrt(wf)
+        scale = _MAD * np.median(np.abs(f * np.sqrt(wf[keep]))) + 1e-15
         new_keep = np.abs(res_all) <= reject_k * scale
         if np.array_equal(new_keep, keep):
             break
@@ -1155,7 +1159,7 @@ def _gauss_spot(win: np.ndarray, u0: float, v0: float):
 
 
 def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre, sig_c,
-                          nrm):
+                          nrm, radius, sig_surface):
     """Ball centres on the substrate plane from their specular highlights.
 
     Under telecentric camera and projector every ball is seen and lit the same way, so
@@ -1163,10 +1167,21 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
     (a small bright spot, located to ~0.01 px by a Gaussian fit) gives each ball's
     position relative to the others far better than the noisy cap fit; the common offset
     is the median of (highlight - cap centre) over the balls.
+
+    The highlight's 3-D point is where its camera line meets the ball's fitted sphere.
+    The line is exact (the points of neighbouring pixels lie on their own lines whatever
+    their depth error: only their components across the viewing direction are used);
+    the depth along it comes from the sphere fit of the whole cap, not from the few
+    points at the highlight (whose depth noise, ~ sigma_line / 5, would move the centre
+    on the substrate by the viewing direction's tilt times that).
+
+    ``radius`` (n,) are the fitted radii, ``sig_surface`` (n,) the standard uncertainty
+    of the fitted surface along the viewing direction near the top (mm).
     """
     if image.shape != cloud.shape:
         raise MetrologyError(f"image has shape {image.shape}, the cloud {cloud.shape}")
     rows, cols = cloud.shape
+    d = np.asarray(cloud.direction, dtype=np.float64)
     h = 3
     hl = np.full(centre.shape, np.nan)
     hl_cov = np.full((centre.shape[0], 3, 3), np.nan)
@@ -1186,7 +1201,6 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
         if g is None:
             continue
         x, y, cov_uv, _ = g
-        # the surface point seen at the highlight: local quadratic fit of the cloud
         du = np.arange(-h, h + 1, dtype=np.float64) - (x - h)
         dv = np.arange(-h, h + 1, dtype=np.float64) - (y - h)
         DV, DU = np.meshgrid(dv, du, indexing="ij")
@@ -1194,11 +1208,22 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
         ok = np.all(np.isfinite(P), axis=1)
         if np.count_nonzero(ok) < 12:
             continue
+        # the camera lines of the window's pixels: their points' components across the
+        # viewing direction, a smooth (affine up to distortion) function of the pixel
+        Q = P[ok] - np.outer(P[ok] @ d, d)
         A = _poly_design(DU.ravel()[ok], DV.ravel()[ok], 2)
-        coef, *_ = np.linalg.lstsq(A, P[ok], rcond=None)
-        J = coef[1:3].T  # (3, 2): d xyz / d (u, v)
-        hl[k] = coef[0]
-        hl_cov[k] = J @ cov_uv @ J.T
+        coef, *_ = np.linalg.lstsq(A, Q, rcond=None)
+        J = coef[1:3].T  # (3, 2): d q / d (u, v)
+        q = coef[0]
+        # front intersection of the line q + t d with the sphere
+        w = q - centre[k]
+        b = float(w @ d)
+        disc = b * b - (float(w @ w) - radius[k] ** 2)
+        if not disc >= 0:
+            continue
+        t = -b - np.sqrt(disc)
+        hl[k] = q + t * d
+        hl_cov[k] = J @ cov_uv @ J.T + sig_surface[k] ** 2 * np.outer(d, d)
     good = np.all(np.isfinite(hl), axis=1)
     if np.count_nonzero(good) < 3:
         return centre, sig_c, np.zeros(centre.shape[0], dtype=bool)
@@ -1221,9 +1246,61 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
     return new_c, new_s, good
 
 
+def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
+             weighted: bool, max_view_angle_deg: float | None, fixed_radius: bool):
+    """Fit one ball's cap; returns (SphereFit, radius_was_free) or None.
+
+    A first robust fit with the nominal radius gives each point's surface normal; points
+    whose surface is tilted more than ``max_view_angle_deg`` from facing the camera
+    (``view``: unit vector toward the camera) are dropped (the pixel footprint and the
+    camera's point spread average a range of depths there, and the average of a convex
+    surface lies below it, increasingly so as 1 / cos^3 of the tilt). The final fit
+    weights each point by 1 / sigma_r^2, sigma_r = sigma_line * cos(tilt) its
+    uncertainty along the radius (points move along the viewing direction only). The
+    radius is free when the cap determines it (0.7 D < diameter < 1.4 D and
+    sigma_radius < 5 % D), else the nominal D / 2.
+    """
+    ok = np.all(np.isfinite(pts), axis=1)
+    if weighted:
+        ok &= np.isfinite(sig) & (sig > 0)
+    pts, sig = pts[ok], sig[ok]
+    if pts.shape[0] < 10:
+        return None
+    w = None
+    if weighted or max_view_angle_deg is not None:
+        f0 = fit_sphere(pts, robust=True, radius=D / 2)
+        nn = pts - f0.centre
+        nn /= np.linalg.norm(nn, axis=1)[:, None]
+        cos_t = np.clip(nn @ view, 1e-3, 1.0)
+        keep = np.ones(pts.shape[0], dtype=bool)
+        if max_view_angle_deg is not None:
+            keep = cos_t >= np.cos(np.radians(max_view_angle_deg))
+        if np.count_nonzero(keep) < 10:
+            return None
+        pts, cos_t, sig = pts[keep], cos_t[keep], sig[keep]
+        if weighted:
+            w = 1.0 / (sig * cos_t) ** 2
+    f = None
+    if not fixed_radius:
+        try:
+            f = fit_sphere(pts, weights=w, robust=True)
+            if not (0.7 * D < f.diameter < 1.4 * D and f.sigma_radius < 0.05 * D):
+                f = None
+        except MetrologyError:
+            f = None
+    free = f is not None
+    if f is None:
+        f = fit_sphere(pts, weights=w, robust=True, radius=D / 2)
+        if not f.rms < 0.1 * D:  # not a cap of the nominal ball
+            return None
+    return f, free
+
+
 def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
                 min_height: float | None = None, min_fraction: float = 0.2,
                 edge_px: int | None = None, cap_min_height: float | None = None,
+                weighted: bool = False, max_view_angle_deg: float | None = None,
+                highlight_px: float = 0.0, fixed_radius: bool = False,
                 seed: int = 0) -> BGAMeasurement:
     """Inspect a ball grid array from its point cloud.
 
@@ -1251,7 +1328,21 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
         highlight (Gaussian fit, ~0.01 px), offset by the median (highlight - cap centre)
         of all balls: with a telecentric camera and projector every ball shows its
         highlight at the same place, so the pitch is measured about 5x better than from
-        the cap fits alone. Balls without a clear highlight keep their cap centres.
+        the cap fits alone. The highlight's 3-D point is where its camera line meets the
+        ball's fitted sphere (so the depth noise of the few points at the highlight does
+        not leak onto the substrate through the tilt of the viewing direction). Balls
+        without a clear highlight keep their cap centres.
+    weighted : bool
+        Weight each cap point by 1 / sigma_r^2 (its ``sigma_line`` projected on the
+        sphere's radius).
+    max_view_angle_deg : float, optional
+        Drop cap points whose surface is tilted more than this from facing the camera.
+    highlight_px : float
+        Drop cap points within this many pixels of the brightest pixel of ``image`` (the
+        camera's point spread carries the highlight's phase into them); 0 keeps them.
+    fixed_radius : bool
+        Fit every cap with the nominal radius (an assumption: the balls are spheres of
+        the nominal diameter); the diameter is then not reported.
     seed : seeds the robust substrate fit.
 
     Returns
@@ -1285,6 +1376,10 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
     fits = []
     regions = []
     free_r = []
+    view = -np.asarray(cloud.direction, dtype=np.float64)
+    image_arr = None if image is None else np.asarray(image, dtype=np.float64)
+    if image_arr is not None and image_arr.shape != cloud.shape:
+        raise MetrologyError(f"image has shape {image_arr.shape}, the cloud {cloud.shape}")
     for lab in range(1, n_lab + 1):
         if sizes[lab] < max(min_fraction * foot, 8):
             continue
@@ -1298,26 +1393,25 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
             reg = ndimage.binary_erosion(reg, iterations=int(edge_px))
         hh = h[sl]
         sel = reg & (np.nan_to_num(hh, nan=-np.inf) > cap_thr)
+        if image_arr is not None and highlight_px > 0:
+            # pixels near the specular highlight: the camera's point spread mixes the
+            # highlight's (far brighter) light, and so its phase, into them
+            sub_img = np.where(labels[sl] == lab, image_arr[sl], -np.inf)
+            pi, pj = np.unravel_index(int(np.argmax(sub_img)), sub_img.shape)
+            vv, uu = np.mgrid[0:sub_img.shape[0], 0:sub_img.shape[1]]
+            sel &= np.hypot(vv - pi, uu - pj) > highlight_px
         pts = cloud.xyz[sl][sel]
+        sig = cloud.sigma_line[sl][sel]
         if pts.shape[0] < 10:
             continue
-        # free radius when the cap determines it; else the nominal radius (small caps:
-        # a few pixels across at low resolution), and no diameter is reported
-        f = None
         try:
-            f = fit_sphere(pts, robust=True)
-            if not (0.7 * D < f.diameter < 1.4 * D and f.sigma_radius < 0.05 * D):
-                f = None
+            f = _fit_cap(pts, sig, view, D, weighted=weighted,
+                         max_view_angle_deg=max_view_angle_deg, fixed_radius=fixed_radius)
         except MetrologyError:
-            f = None
-        free = f is not None
+            continue
         if f is None:
-            try:
-                f = fit_sphere(pts, robust=True, radius=D / 2)
-            except MetrologyError:
-                continue
-            if not f.rms < 0.1 * D:  # not a cap of the nominal ball
-                continue
+            continue
+        f, free = f
         fits.append(f)
         free_r.append(free)
         regions.append((sl, labels[sl] == lab))
@@ -1328,8 +1422,10 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
     radius = np.array([f.radius for f in fits])
     refined = np.zeros(len(fits), dtype=bool)
     if image is not None:
+        sig_top = np.array([_apex_sigma(f, nrm) for f in fits])
         centre, sig_c, refined = _refine_by_highlights(cloud, np.asarray(image, np.float64),
-                                                       regions, centre, sig_c, nrm)
+                                                       regions, centre, sig_c, nrm, radius,
+                                                       sig_top)
     apex = centre + radius[:, None] * nrm
     height = apex @ nrm - substrate.offset
     sig_h = np.array([np.hypot(_apex_sigma(f, nrm), substrate.sigma_at(a))
