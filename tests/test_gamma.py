@@ -144,6 +144,45 @@ def test_model_helpers():
     assert default_harmonics(12) == (12, 24)
 
 
+def _strong_model():
+    """A 3-step-like error of 0.15 rad with harmonics up to 24 (orders sharing divisor 3)."""
+    harm = (3, 6, 9, 12, 18, 24)
+    return PhaseErrorModel(64, harm, np.array([0.02, -0.01, 0.004, 0.002, -0.001, 0.0005]),
+                           np.array([-0.12, 0.015, -0.006, 0.003, 0.001, -0.0004]))
+
+
+def test_inversion_cold_and_warm_start_solve_the_model_to_1e_14():
+    m = _strong_model()
+    x = np.random.default_rng(5).uniform(-np.pi, np.pi, 20_000)
+    cold = m._invert(x)
+    assert np.max(np.abs(cold + m.error(cold) - x)) < 1e-13  # the equation, not a proxy
+    # warm start from the solution of a nearby model (as the Gauss-Newton loop does)
+    near = PhaseErrorModel(64, m.harmonics, m.cos_coef * 1.01, m.sin_coef * 0.99)
+    warm = m._invert(x, near._invert(x))
+    assert np.max(np.abs(warm - cold)) < 1e-13
+    # orders 1..24 without a common divisor go through the same recurrence
+    odd = PhaseErrorModel(1, (1, 5, 7), np.array([0.01, 0.0, 0.002]),
+                          np.array([0.05, -0.004, 0.001]))
+    sol = odd._invert(x)
+    assert np.max(np.abs(sol + odd.error(sol) - x)) < 1e-13
+
+
+def test_correction_and_noise_tables_are_bounded_against_the_exact_inverse():
+    m = _strong_model()
+    x = np.random.default_rng(6).uniform(-np.pi, np.pi, 50_000)
+    exact = m._invert(x)
+    assert m.table_error <= 1e-8
+    assert m._table[0].size % 4096 == 0
+    got = m.correct(x)
+    assert np.max(np.abs(wrap(got - exact))) <= m.table_error + 1e-15
+    nf = 1.0 / (1.0 + m.slope(exact))
+    assert m.noise_table_error <= 1e-6
+    assert np.max(np.abs(m.noise_factor(x) / nf - 1.0)) <= m.noise_table_error + 1e-15
+    # NaN stays NaN (invalid pixels) in both look-ups
+    assert np.isnan(m.correct(np.array([np.nan]))[0])
+    assert np.isnan(m.noise_factor(np.array([np.nan]))[0])
+
+
 def test_precompensation_with_a_measured_response():
     # a projector with gamma 2.2 and black level 0.02, measured with uniform frames
     levels = np.linspace(0, 1, 33)

@@ -1,0 +1,182 @@
+"""Numba kernels of the projector-nonlinearity model (private; used by
+:mod:`telefringe.gamma`). No fastmath; ``cache=True``.
+
+Harmonics ``cos(m phi), sin(m phi)`` come from the complex recurrence
+``exp(i m phi) = exp(i (m-1) phi) exp(i phi)`` (one sin/cos per sample; rounding error grows
+like m * 1e-16, below 1e-14 for the orders used here, m <= 48).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+TWO_PI = 2.0 * math.pi
+
+
+@nb.njit(cache=True, nogil=True)
+def _gcd(harmonics):
+    """Greatest common divisor of the orders (1 for none)."""
+    d = 0
+    for m in range(harmonics.size):
+        a, b = d, harmonics[m]
+        while b:
+            a, b = b, a % b
+        d = a
+    return max(d, 1)
+
+
+@nb.njit(cache=True, nogil=True)
+def _dense_coefficients(harmonics, cos_coef, sin_coef):
+    """The orders' common divisor d and the coefficients on the dense axis of multiples
+    k d, k = 0..max(harmonics) / d (zeros between), so that the recurrence steps by d."""
+    d = _gcd(harmonics)
+    kmax = 0
+    for m in range(harmonics.size):
+        kmax = max(kmax, harmonics[m] // d)
+    ca = np.zeros(kmax + 1)
+    sa = np.zeros(kmax + 1)
+    for m in range(harmonics.size):
+        ca[harmonics[m] // d] += cos_coef[m]
+        sa[harmonics[m] // d] += sin_coef[m]
+    return d, ca, sa
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def harmonic_sum(phase, harmonics, cos_coef, sin_coef, out):
+    """``out[i] = sum_m cos_coef[m] cos(h_m phase[i]) + sin_coef[m] sin(h_m phase[i])``.
+
+    phase, out : (n,) float64, rad; harmonics : (k,) int64 orders >= 1; cos_coef, sin_coef :
+    (k,) float64, rad.
+    """
+    d, ca, sa = _dense_coefficients(harmonics, cos_coef, sin_coef)
+    kmax = ca.size - 1
+    for i in nb.prange(phase.size):
+        c1 = math.cos(d * phase[i])
+        s1 = math.sin(d * phase[i])
+        c = 1.0
+        s = 0.0
+        acc = 0.0
+        for h in range(1, kmax + 1):
+            c, s = c * c1 - s * s1, s * c1 + c * s1
+            acc += ca[h] * c + sa[h] * s
+        out[i] = acc
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def invert_harmonic(measured, harmonics, cos_coef, sin_coef, start, out):
+    """Solve ``phi + e(phi) = measured`` per sample by Newton's method, where
+    ``e(phi) = sum_m cos_coef[m] cos(h_m phi) + sin_coef[m] sin(h_m phi)``.
+
+    measured, out : (n,) float64, rad. start : (n,) float64 starting values (rad), or an
+    empty array to start at ``measured - e(measured)``. Each sample stops when Newton's
+    error bound after its last step is below 1e-15 rad, or the step below 1e-14 rad (at
+    most 60 steps). Returns False when ``1 + e'(phi) <= 0`` is met (the
+    model is not invertible there), True otherwise.
+    """
+    n = measured.size
+    d, ca, sa = _dense_coefficients(harmonics, cos_coef, sin_coef)
+    kmax = ca.size - 1
+    # Newton's error bound: after a step s the error is <= K2 / (2 min(1 + e')) s^2 with
+    # K2 = sum (k d)^2 (|a| + |b|) >= |e''|; stop once that is below 1e-15 rad (or when
+    # the step itself is below 1e-14 rad)
+    k2 = 0.0
+    for k in range(1, kmax + 1):
+        k2 += (k * d) ** 2 * (abs(ca[k]) + abs(sa[k]))
+    warm = start.size == n
+    bad = np.zeros(n, dtype=np.bool_)
+    for i in nb.prange(n):
+        x = measured[i]
+        phi = start[i] if warm else x
+        for it in range(62):
+            c1 = math.cos(d * phi)
+            s1 = math.sin(d * phi)
+            c = 1.0
+            s = 0.0
+            e = 0.0
+            de = 0.0
+            for k in range(1, kmax + 1):
+                c, s = c * c1 - s * s1, s * c1 + c * s1
+                e += ca[k] * c + sa[k] * s
+                de += (k * d) * (sa[k] * c - ca[k] * s)
+            if it == 0 and not warm:
+                phi = x - e  # the start, as e is evaluated at the measured phase
+                continue
+            slope = 1.0 + de
+            if slope <= 0.0:
+                bad[i] = True
+                break
+            step = (phi + e - x) / slope
+            phi = phi - step
+            # (1 + e' >= slope - K2 |step| near the root)
+            lower = slope - k2 * abs(step)
+            if abs(step) < 1e-14 or (lower > 0.0 and k2 * step * step < 2e-15 * lower):
+                break
+        out[i] = phi
+    for i in range(n):
+        if bad[i]:
+            return False
+    return True
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def design_rows(phase_a, phase_b, scale_a, scale_b, harm_a, harm_b, out):
+    """Rows of the pair design matrix: ``out[i] = [scale_a[i] h_a(phase_a[i]),
+    scale_b[i] h_b(phase_b[i])]`` with ``h(phi) = (cos m phi, sin m phi)`` for each order m
+    of the (sorted) harmonics.
+
+    phase_*, scale_* : (n,) float64; harm_* : (k_*,) int64 sorted; out : (n, 2 (k_a + k_b)).
+    """
+    na = 2 * harm_a.size
+    for i in nb.prange(phase_a.size):
+        for part in range(2):
+            phase = phase_a[i] if part == 0 else phase_b[i]
+            scale = scale_a[i] if part == 0 else scale_b[i]
+            harm = harm_a if part == 0 else harm_b
+            start = 0 if part == 0 else na
+            d = _gcd(harm)
+            c1 = math.cos(d * phase)
+            s1 = math.sin(d * phase)
+            c = 1.0
+            s = 0.0
+            h = 0
+            for m in range(harm.size):
+                while h < harm[m] // d:
+                    c, s = c * c1 - s * s1, s * c1 + c * s1
+                    h += 1
+                out[i, start + 2 * m] = scale * c
+                out[i, start + 2 * m + 1] = scale * s
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def table_interp(phase, table, wrap_difference, out):
+    """Periodic linear interpolation of ``table`` (sampled at ``-pi + 2 pi j / M``) at each
+    phase (rad). With ``wrap_difference`` the result is ``wrap(phase - interp)`` in
+    (-pi, pi] (the correction of a measured phase), else ``interp`` itself.
+
+    phase, out : (n,) float64; table : (M,) float64. NaN phases give NaN.
+    """
+    m = table.size
+    scale = m / TWO_PI
+    for i in nb.prange(phase.size):
+        p = phase[i]
+        if not math.isfinite(p):
+            out[i] = np.nan
+            continue
+        t = (p + math.pi) * scale
+        j = int(math.floor(t))
+        f = t - j
+        j0 = j % m
+        j1 = (j0 + 1) % m
+        g = table[j0] * (1.0 - f) + table[j1] * f
+        if wrap_difference:
+            q = p - g
+            if q > math.pi:
+                q -= TWO_PI
+            elif q <= -math.pi:
+                q += TWO_PI
+            out[i] = q
+        else:
+            out[i] = g
