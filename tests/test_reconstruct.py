@@ -86,6 +86,18 @@ def test_compiled_undistortion_matches_the_model():
         _undistort(np.array([30.0]), np.array([30.0]), -0.05, 0.0, 0.0)
 
 
+def test_grid_set_up_is_the_per_pixel_set_up():
+    # for_shape's fused kernel does for_pixels' operations on the pixel grid: bit-equal
+    for rig in (make_rig(), make_rig(k1_c=0.0, s1_c=0.0, s2_c=0.0)):
+        grid = Triangulator.for_shape(rig, SHAPE)
+        v, u = np.mgrid[0:SHAPE[0], 0:SHAPE[1]]
+        ref = Triangulator.for_pixels(rig, u, v)
+        assert grid.shape == ref.shape == SHAPE
+        np.testing.assert_array_equal(grid.a, ref.a)
+        np.testing.assert_array_equal(grid.b, ref.b)
+        np.testing.assert_array_equal(grid.coef, ref.coef)
+
+
 def test_camera_looks_down():
     rig = make_rig()
     assert rig.camera.axis_world[2] < -0.99
@@ -134,6 +146,39 @@ def test_exact_recovery_strong_distortion():
     assert cloud.count == cloud2.count == X.shape[0] * X.shape[1]
     assert np.max(np.abs(cloud.xyz - X)) < 1e-9
     assert np.max(np.abs(cloud2.xyz - X)) < 1e-9
+
+
+@pytest.mark.parametrize("k_p", [(3e-4, 5e-5, -8e-5), (2e-2, 3e-3, -3e-3)])
+def test_u_only_kernel_matches_the_iterated_solution(k_p):
+    """The lean u-only kernel (chord steps + one Newton step, reciprocal slope reused for
+    sigma) against the general kernel, which iterates Newton on u_p and checks v_p (here
+    with no residual limit, so the flags mean the same): the same points to 1e-9 mm
+    (1e-6 um), the same sigma to 1e-9 relative, the same flags. The u_p are noisy, so
+    the points are not the ones the observations were made from."""
+    rig = make_rig(k1_p=k_p[0], s1_p=k_p[1], s2_p=k_p[2])
+    X, up, vp = surface_points(rig, depth=6.0, seed=3)
+    rng = np.random.default_rng(4)
+    sig = rng.uniform(0.01, 0.1, SHAPE)
+    up = up + sig * rng.standard_normal(SHAPE)
+    up[5, 7] = np.nan
+    mask = np.ones(SHAPE, dtype=bool)
+    mask[9, 11] = False
+    # a limit on sigma_z that flags about a tenth of the points
+    max_sz = float(np.nanpercentile(triangulate(rig, Coords(up, None, mask, sig)).sigma_z, 90))
+    fast = triangulate(rig, Coords(up, None, mask, sig), max_sigma_z=max_sz)
+    ref = triangulate(rig, Coords(up, vp, mask, sig, sig), use_v_p=False, max_residual=None,
+                      max_sigma_z=max_sz)
+    assert fast.residual is None and ref.residual is not None
+    np.testing.assert_array_equal(fast.flags, ref.flags)
+    np.testing.assert_array_equal(fast.mask, ref.mask)
+    assert 0.5 * up.size < fast.count < 0.95 * up.size
+    assert np.any(fast.flags & FLAG_UNCERTAIN) and np.any(fast.flags & FLAG_NO_PHASE)
+    m = fast.mask
+    assert np.max(np.abs(fast.xyz[m] - ref.xyz[m])) < 1e-9
+    assert np.max(np.abs(fast.sigma_line[m] / ref.sigma_line[m] - 1)) < 1e-9
+    # and the solution is the root: the model projects it back onto the observed u_p
+    u_back, _ = rig.projector.project(fast.xyz[m])
+    assert np.max(np.abs(u_back - up[m])) < 1e-8
 
 
 def test_v_fringes_only():

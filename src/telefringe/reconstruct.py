@@ -247,8 +247,18 @@ class Triangulator:
             raise TriangulationError(
                 f"the camera images are {rows} x {cols} (rows x cols) but the rig's camera "
                 f"is {k.height} x {k.width}: the rig does not belong to this scan")
-        v, u = np.mgrid[0:rows, 0:cols].astype(np.float64)
-        return cls.for_pixels(rig, u, v)
+        cam = rig.camera
+        a = np.empty((rows, cols))
+        b = np.empty((rows, cols))
+        n_bad = _grid_lines_kernel(float(k.u0), float(k.v0), float(k.du), float(k.dv),
+                                   float(k.k1), float(k.s1), float(k.s2), float(k.m),
+                                   float(cam.t_dev[0]), float(cam.t_dev[1]), a, b)
+        if n_bad:
+            # the model's own error message and checks
+            v, u = np.mgrid[0:rows, 0:cols].astype(np.float64)
+            return cls.for_pixels(rig, u, v)
+        return cls(rig, (rows, cols), _readonly(a), _readonly(b),
+                   _readonly(_projector_coef(rig)))
 
     @classmethod
     def for_pixels(cls, rig: Rig, u, v) -> Triangulator:
@@ -257,16 +267,13 @@ class Triangulator:
         u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64),
                                    np.asarray(v, dtype=np.float64))
         cam: TelecentricDevice = rig.camera
-        prj: TelecentricDevice = rig.projector
         xd, yd = cam.pixel_to_sensor(u, v)
         xu, yu = _undistort(xd, yd, *cam.intrinsics.distortion)
         mc = cam.intrinsics.m
         a = np.ascontiguousarray(xu / mc - cam.t_dev[0])
         b = np.ascontiguousarray(yu / mc - cam.t_dev[1])
-        Rc = cam.R_dev_world
-        basis = np.stack([Rc[0], Rc[1], Rc[2]], axis=1)  # (3, 3): columns = Rc0, Rc1, d
-        coef = prj.intrinsics.m * (prj.R_dev_world[:2] @ basis)
-        return cls(rig, tuple(u.shape), _readonly(a), _readonly(b), _readonly(coef))
+        return cls(rig, tuple(u.shape), _readonly(a), _readonly(b),
+                   _readonly(_projector_coef(rig)))
 
     @property
     def direction(self) -> np.ndarray:
@@ -345,30 +352,42 @@ class Triangulator:
             return np.ascontiguousarray(x).reshape(n)
 
         up_f = flat(up)
-        # v_p absent: u_p stands in (never read as v_p: has_v is false)
-        vp_f = flat(vp) if has_v else up_f
+        su_f = flat(su)
+        mask_f = flat(mask_in.astype(bool, copy=False))
+        # x, y, z planes: the kernels write contiguous planes, the cloud views them as
+        # (rows, cols, 3)
         xyz_planar = np.empty((3,) + self.shape)
         x, y, z = (xyz_planar[k].reshape(n) for k in range(3))
         sig = np.empty(n)
-        res = np.empty(n)
         flags = np.empty(n, dtype=np.uint8)
+        ok = np.empty(n, dtype=np.bool_)
         Rc = np.ascontiguousarray(self.rig.camera.R_dev_world)
         kp = np.array((u0, v0, du, dv, ki.k1, s1, s2, W, H, coef[0, 0], coef[0, 1], Bu,
                        coef[1, 0], coef[1, 1], Bv, t_p[0], t_p[1], 1.0 / du, 1.0 / dv),
                       dtype=np.float64)
-        args = (self.a.reshape(n), self.b.reshape(n), up_f, vp_f, flat(su), flat(sv),
-                flat(mask_in.astype(bool, copy=False)), has_v, combine, kp, Rc,
-                np.inf if max_residual is None else float(max_residual),
-                np.inf if max_sigma_z is None else float(max_sigma_z), x, y, z, sig, res,
-                flags)
-        _solve_fast(*args)
-        if np.any(flags & FLAG_NOT_CONVERGED):
-            _solve_slow(*args)
+        max_res = np.inf if max_residual is None else float(max_residual)
+        max_sz = np.inf if max_sigma_z is None else float(max_sigma_z)
+        a_f, b_f = self.a.reshape(n), self.b.reshape(n)
+        if has_v:
+            vp_f = flat(vp)
+            sv_f = flat(sv)
+            res = np.empty(n)
+            _solve_fast(a_f, b_f, up_f, vp_f, su_f, sv_f, mask_f, True, combine, kp, Rc,
+                        max_res, max_sz, x, y, z, sig, res, flags, ok)
+            n_slow = np.count_nonzero(flags & FLAG_NOT_CONVERGED)
+        else:
+            # u_p alone (the usual scan): the lean kernel, no v_p, no residual
+            vp_f, sv_f, res = up_f, su_f, None
+            n_slow = _solve_u_fast(a_f, b_f, up_f, su_f, mask_f, kp, Rc, max_sz, x, y, z, sig,
+                                   flags, ok)
+        if n_slow:
+            _solve_slow(a_f, b_f, up_f, vp_f, su_f, sv_f, mask_f, has_v, combine, kp, Rc,
+                        max_res, max_sz, x, y, z, sig, np.empty(n) if res is None else res,
+                        flags, ok)
         shape = self.shape
-        # (rows, cols, 3) view of planar storage: the kernel writes x, y, z planes
         xyz = np.moveaxis(xyz_planar, 0, -1)
-        return PointCloud(xyz, (flags == 0).reshape(shape), sig.reshape(shape),
-                          res.reshape(shape) if has_v else None, flags.reshape(shape),
+        return PointCloud(xyz, ok.reshape(shape), sig.reshape(shape),
+                          None if res is None else res.reshape(shape), flags.reshape(shape),
                           self.direction)
 
 
@@ -460,7 +479,7 @@ def _observe(i, up, vp, su, sv, mask, combine, kp):  # pragma: no cover - numba
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, combine, kp,
-            Rc, max_res, max_sz, x, y, z, sig, res, flags):  # pragma: no cover - numba
+            Rc, max_res, max_sz, x, y, z, sig, res, flags, ok):  # pragma: no cover - numba
     cu0, cu1, cu2, cu3, cv0, cv1, cv2, cv3, Au, Av = c
     idu = kp[17]  # 1 / du
     idv = kp[18]
@@ -498,6 +517,7 @@ def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, co
     f = f if valid else FLAG_NO_PHASE
     flags[i] = f
     good = f == 0
+    ok[i] = good
     sig[i] = sg if good else np.nan
     x[i] = (ai * Rc[0, 0] + bi * Rc[1, 0] + s * Rc[2, 0]) if good else np.nan
     y[i] = (ai * Rc[0, 1] + bi * Rc[1, 1] + s * Rc[2, 1]) if good else np.nan
@@ -506,7 +526,7 @@ def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, co
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _solve_block(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max_sz,
-                 x, y, z, sig, res, flags):  # pragma: no cover - numba
+                 x, y, z, sig, res, flags, ok):  # pragma: no cover - numba
     # fixed steps, no data-dependent branches: LLVM vectorises this loop
     for i in range(a.shape[0]):
         u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv = _observe(
@@ -520,24 +540,134 @@ def _solve_block(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, ma
             s, est = _newton_step(s, c, xd_obs, yd_obs, wu, wv, combine)
         converged = est <= _TOL_S * (1.0 + abs(s))
         _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, combine, kp,
-                Rc, max_res, max_sz, x, y, z, sig, res, flags)
+                Rc, max_res, max_sz, x, y, z, sig, res, flags, ok)
 
 
 @njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _solve_fast(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max_sz,
-                x, y, z, sig, res, flags):  # pragma: no cover - numba
+                x, y, z, sig, res, flags, ok):  # pragma: no cover - numba
     n = a.shape[0]
     for k in prange((n + _CHUNK - 1) // _CHUNK):
         lo = k * _CHUNK
         hi = min(lo + _CHUNK, n)
         _solve_block(a[lo:hi], b[lo:hi], up[lo:hi], vp[lo:hi], su[lo:hi], sv[lo:hi],
                      mask[lo:hi], has_v, combine, kp, Rc, max_res, max_sz, x[lo:hi],
-                     y[lo:hi], z[lo:hi], sig[lo:hi], res[lo:hi], flags[lo:hi])
+                     y[lo:hi], z[lo:hi], sig[lo:hi], res[lo:hi], flags[lo:hi], ok[lo:hi])
+
+
+# u fringes only (the usual scan): s is the root of xd(s) = xd_obs. From the linear
+# solution, _N_CHORD chord steps with the slope cu1 (one reciprocal serves them all; each
+# multiplies the error by |xd'(s) / cu1 - 1|, the distortion's small share of the slope:
+# ~1e-4 for the paper's projector), then one Newton step, whose reciprocal slope also
+# gives sigma. The error left after the Newton step is estimated from its quadratic
+# convergence as in _newton_step; pixels above the tolerance go to the slow pass. Two
+# divisions per pixel, no v_p, no residual: this loop is bound by memory traffic.
+_N_CHORD = 2
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _solve_u_block(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
+                   ok):  # pragma: no cover - numba
+    # returns the number of pixels left to the slow pass
+    u0 = kp[0]
+    v0 = kp[1]
+    du = kp[2]
+    k1 = kp[4]
+    s1 = kp[5]
+    s2 = kp[6]
+    W = kp[7]
+    H = kp[8]
+    Bu = kp[11]
+    Bv = kp[14]
+    idu = kp[17]
+    idv = kp[18]
+    pu_a = kp[9]
+    pu_b = kp[10]
+    pv_a = kp[12]
+    pv_b = kp[13]
+    tu = kp[15]
+    tv = kp[16]
+    q2 = Bu * Bu + Bv * Bv
+    # loop invariants in locals: the stores below could alias kp and Rc for all the
+    # compiler knows, which would reload them every pixel
+    r00, r01, r02 = Rc[0, 0], Rc[0, 1], Rc[0, 2]
+    r10, r11, r12 = Rc[1, 0], Rc[1, 1], Rc[1, 2]
+    r20, r21, r22 = Rc[2, 0], Rc[2, 1], Rc[2, 2]
+    d22 = abs(r22)
+    n_slow = 0
+    for i in range(a.shape[0]):
+        ai = a[i]
+        bi = b[i]
+        u_obs = up[i]
+        valid = mask[i] & (abs(u_obs) < np.inf)
+        Au = pu_a * ai + pu_b * bi + tu
+        Av = pv_a * ai + pv_b * bi + tv
+        q0 = Au * Au + Av * Av
+        q1 = 2.0 * (Au * Bu + Av * Bv)
+        cu0 = Au + (k1 * Au + s1) * q0
+        cu1 = Bu + k1 * (Au * q1 + Bu * q0) + s1 * q1
+        cu2 = k1 * (Au * q2 + Bu * q1) + s1 * q2
+        cu3 = k1 * Bu * q2
+        t = (u_obs - u0) * du - cu0
+        r1 = 1.0 / cu1
+        s = t * r1
+        for _ in range(_N_CHORD):
+            s = (t - s * s * (cu2 + cu3 * s)) * r1
+        f = s * (cu1 + s * (cu2 + cu3 * s)) - t
+        g = cu1 + s * (2.0 * cu2 + 3.0 * cu3 * s)
+        h = 2.0 * cu2 + 6.0 * cu3 * s
+        rg = 1.0 / g
+        ds = f * rg
+        s = s - ds
+        converged = abs(0.5 * h * rg) * ds * ds <= _TOL_S * (1.0 + abs(s))
+        # 1 / xd'(s) at the new s, to first order in ds (relative error ~ (h ds / g)^2)
+        rg = rg * (1.0 + h * ds * rg)
+        sg = su[i] * du * abs(rg)  # sigma_u / |du_P/ds|
+        # the predicted projector pixel (for the bounds) and the fold check, from the
+        # undistorted projector coordinates at s
+        xu = Au + Bu * s
+        yu = Av + Bv * s
+        q = xu * xu + yu * yu
+        up_pred = u0 + (xu + (k1 * xu + s1) * q) * idu
+        vp_pred = v0 + (yu + (k1 * yu + s2) * q) * idv
+        inside = ((up_pred >= -0.5) & (up_pred <= W - 0.5) & (vp_pred >= -0.5)
+                  & (vp_pred <= H - 0.5))
+        fa = 1.0 + k1 * (q + 2.0 * xu * xu) + 2.0 * s1 * xu
+        fb = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
+        fc = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
+        fd = 1.0 + k1 * (q + 2.0 * yu * yu) + 2.0 * s2 * yu
+        converged = converged & (fa * fd - fb * fc > 0.0) & (fa + fd > 0.0)
+        fl = (FLAG_OUTSIDE * (1 - inside) + FLAG_NOT_CONVERGED * (1 - converged)
+              + FLAG_UNCERTAIN * (sg * d22 > max_sz))
+        fl = fl if valid else FLAG_NO_PHASE
+        flags[i] = fl
+        n_slow += (fl & FLAG_NOT_CONVERGED) != 0
+        good = fl == 0
+        ok[i] = good
+        sig[i] = sg if good else np.nan
+        x[i] = (ai * r00 + bi * r10 + s * r20) if good else np.nan
+        y[i] = (ai * r01 + bi * r11 + s * r21) if good else np.nan
+        z[i] = (ai * r02 + bi * r12 + s * r22) if good else np.nan
+    return n_slow
+
+
+@njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _solve_u_fast(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
+                  ok):  # pragma: no cover - numba
+    n = a.shape[0]
+    n_slow = 0
+    for k in prange((n + _CHUNK - 1) // _CHUNK):
+        lo = k * _CHUNK
+        hi = min(lo + _CHUNK, n)
+        n_slow += _solve_u_block(a[lo:hi], b[lo:hi], up[lo:hi], su[lo:hi], mask[lo:hi], kp, Rc,
+                                 max_sz, x[lo:hi], y[lo:hi], z[lo:hi], sig[lo:hi],
+                                 flags[lo:hi], ok[lo:hi])
+    return n_slow
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _solve_slow(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max_sz,
-                x, y, z, sig, res, flags):  # pragma: no cover - numba
+                x, y, z, sig, res, flags, ok):  # pragma: no cover - numba
     # the pixels the fast pass left unconverged: iterate
     for i in range(a.shape[0]):
         if not (flags[i] & FLAG_NOT_CONVERGED):
@@ -557,7 +687,7 @@ def _solve_slow(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max
                 converged = True
                 break
         _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, combine, kp,
-                Rc, max_res, max_sz, x, y, z, sig, res, flags)
+                Rc, max_res, max_sz, x, y, z, sig, res, flags, ok)
 
 
 def _undistort(xd, yd, k1, s1, s2):
@@ -593,6 +723,33 @@ def _undistort_kernel(xd, yd, k1, s1, s2, xu_out, yu_out,
                 n_bad += 1
         xu_out[i] = xu
         yu_out[i] = yu
+    return n_bad
+
+
+def _projector_coef(rig: Rig) -> np.ndarray:
+    """(2, 3): the projector's undistorted sensor mm along a camera line, ``[xu_P, yu_P]
+    = coef @ [a, b, s] + m_P t_P``."""
+    Rc = rig.camera.R_dev_world
+    basis = np.stack([Rc[0], Rc[1], Rc[2]], axis=1)  # (3, 3): columns = Rc0, Rc1, d
+    return rig.projector.intrinsics.m * (rig.projector.R_dev_world[:2] @ basis)
+
+
+@njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _grid_lines_kernel(u0, v0, du, dv, k1, s1, s2, m, t0, t1, a,
+                       b):  # pragma: no cover - numba
+    # Triangulator.for_pixels on the full pixel grid, fused: the same operations in the
+    # same order (pixel -> distorted sensor mm -> undistorted -> line offsets a, b)
+    rows, cols = a.shape
+    n_bad = 0
+    for r in prange(rows):
+        yd = (r - v0) * dv
+        for c in range(cols):
+            xd = (c - u0) * du
+            xu, yu, ok = undistort_point(xd, yd, k1, s1, s2)
+            if not ok:
+                n_bad += 1
+            a[r, c] = xu / m - t0
+            b[r, c] = yu / m - t1
     return n_bad
 
 
