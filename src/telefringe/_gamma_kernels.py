@@ -121,6 +121,23 @@ def invert_harmonic(measured, harmonics, cos_coef, sin_coef, start, out):
     return True
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _harmonic_row(phase, scale, harm, d, out, i, start):
+    """out[i, start + 2m], out[i, start + 2m + 1] = scale (cos, sin)(harm[m] phase)."""
+    c1 = math.cos(d * phase)
+    s1 = math.sin(d * phase)
+    c = 1.0
+    s = 0.0
+    h = 0
+    for m in range(harm.size):
+        target = harm[m] // d
+        while h < target:
+            c, s = c * c1 - s * s1, s * c1 + c * s1
+            h += 1
+        out[i, start + 2 * m] = scale * c
+        out[i, start + 2 * m + 1] = scale * s
+
+
 @nb.njit(cache=True, nogil=True, parallel=True)
 def design_rows(phase_a, phase_b, scale_a, scale_b, harm_a, harm_b, out):
     """Rows of the pair design matrix: ``out[i] = [scale_a[i] h_a(phase_a[i]),
@@ -130,24 +147,11 @@ def design_rows(phase_a, phase_b, scale_a, scale_b, harm_a, harm_b, out):
     phase_*, scale_* : (n,) float64; harm_* : (k_*,) int64 sorted; out : (n, 2 (k_a + k_b)).
     """
     na = 2 * harm_a.size
+    da = _gcd(harm_a)
+    db = _gcd(harm_b)
     for i in nb.prange(phase_a.size):
-        for part in range(2):
-            phase = phase_a[i] if part == 0 else phase_b[i]
-            scale = scale_a[i] if part == 0 else scale_b[i]
-            harm = harm_a if part == 0 else harm_b
-            start = 0 if part == 0 else na
-            d = _gcd(harm)
-            c1 = math.cos(d * phase)
-            s1 = math.sin(d * phase)
-            c = 1.0
-            s = 0.0
-            h = 0
-            for m in range(harm.size):
-                while h < harm[m] // d:
-                    c, s = c * c1 - s * s1, s * c1 + c * s1
-                    h += 1
-                out[i, start + 2 * m] = scale * c
-                out[i, start + 2 * m + 1] = scale * s
+        _harmonic_row(phase_a[i], scale_a[i], harm_a, da, out, i, 0)
+        _harmonic_row(phase_b[i], scale_b[i], harm_b, db, out, i, na)
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)

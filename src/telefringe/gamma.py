@@ -418,12 +418,13 @@ def _pair_normal_equations(phase_a, phase_b, scale_a, scale_b, harm_a, harm_b, o
     na, nb_ = 2 * harm_a.size, 2 * harm_b.size
     if keep.size == 0 or na + nb_ == 0:
         return
+    root = np.sqrt(weight[keep])  # rows scaled by sqrt(w): J^T W J = R^T R
     rows = np.empty((keep.size, na + nb_))
-    _k.design_rows(phase_a[keep], phase_b[keep], np.broadcast_to(scale_a, weight.shape)[keep],
-                   np.broadcast_to(scale_b, weight.shape)[keep], harm_a, harm_b, rows)
-    weighted = rows * weight[keep, None]
-    loc = weighted.T @ rows
-    locb = weighted.T @ target[keep]
+    _k.design_rows(phase_a[keep], phase_b[keep],
+                   np.broadcast_to(scale_a, weight.shape)[keep] * root,
+                   np.broadcast_to(scale_b, weight.shape)[keep] * root, harm_a, harm_b, rows)
+    loc = rows.T @ rows
+    locb = rows.T @ (target[keep] * root)
     index = np.concatenate([off_a + np.arange(na), off_b + np.arange(nb_)])
     ata[np.ix_(index, index)] += loc
     atb[index] += locb
@@ -592,7 +593,11 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
             break
         coef = coef + step
         models = trial
-        if np.max(np.abs(step)) < tol:
+        # converged: the step is below tol, or below 1 % of every coefficient's
+        # standard error (further steps would not change the result materially)
+        s2 = chi2 / max(total_keep - n_par, 1)
+        se = np.sqrt(np.abs(s2 * np.diag(np.linalg.inv(ata + ridge * np.eye(n_par)))))
+        if np.max(np.abs(step)) < tol or np.all(np.abs(step) <= 0.01 * se):
             break
     return coef, rms, total_keep, ata, chi2
 
