@@ -734,22 +734,58 @@ def _projector_coef(rig: Rig) -> np.ndarray:
     return rig.projector.intrinsics.m * (rig.projector.R_dev_world[:2] @ basis)
 
 
+_N_UNDISTORT = 3
+
+
 @njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _grid_lines_kernel(u0, v0, du, dv, k1, s1, s2, m, t0, t1, a,
                        b):  # pragma: no cover - numba
-    # Triangulator.for_pixels on the full pixel grid, fused: the same operations in the
-    # same order (pixel -> distorted sensor mm -> undistorted -> line offsets a, b)
+    # Triangulator.for_pixels on the full pixel grid, fused (pixel -> distorted sensor mm
+    # -> undistorted -> line offsets a, b). The undistortion: from the first-order inverse,
+    # _N_UNDISTORT Newton steps with no data-dependent branch (the row vectorises), then
+    # the acceptance test of telefringe.model.undistort_sensor, tightened to its stopping
+    # tolerance; the pixels that fail it are redone with the iterating undistort_point.
     rows, cols = a.shape
     n_bad = 0
     for r in prange(rows):
         yd = (r - v0) * dv
+        redo = 0
         for c in range(cols):
             xd = (c - u0) * du
-            xu, yu, ok = undistort_point(xd, yd, k1, s1, s2)
-            if not ok:
-                n_bad += 1
-            a[r, c] = xu / m - t0
+            r2 = xd * xd + yd * yd
+            xu = xd - (k1 * xd + s1) * r2
+            yu = yd - (k1 * yd + s2) * r2
+            for _ in range(_N_UNDISTORT):
+                r2 = xu * xu + yu * yu
+                fx = xu + k1 * xu * r2 + s1 * r2 - xd
+                fy = yu + k1 * yu * r2 + s2 * r2 - yd
+                ja = 1.0 + k1 * (r2 + 2.0 * xu * xu) + 2.0 * s1 * xu
+                jb = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
+                jc = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
+                jd = 1.0 + k1 * (r2 + 2.0 * yu * yu) + 2.0 * s2 * yu
+                idet = 1.0 / (ja * jd - jb * jc)
+                xu = xu - (jd * fx - jb * fy) * idet
+                yu = yu - (ja * fy - jc * fx) * idet
+            r2 = xu * xu + yu * yu
+            res = (abs(xu + k1 * xu * r2 + s1 * r2 - xd)
+                   + abs(yu + k1 * yu * r2 + s2 * r2 - yd))
+            ja = 1.0 + k1 * (r2 + 2.0 * xu * xu) + 2.0 * s1 * xu
+            jb = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
+            jc = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
+            jd = 1.0 + k1 * (r2 + 2.0 * yu * yu) + 2.0 * s2 * yu
+            thresh = max(1e-12, 64.0 * 2.220446049250313e-16 * (abs(xd) + abs(yd)))
+            good = (res <= thresh) & (ja * jd - jb * jc > 0.0) & (ja + jd > 0.0)
+            redo += not good
+            a[r, c] = (xu / m - t0) if good else np.nan
             b[r, c] = yu / m - t1
+        if redo:
+            for c in range(cols):
+                if np.isnan(a[r, c]):
+                    xu, yu, ok = undistort_point((c - u0) * du, yd, k1, s1, s2)
+                    if not ok:
+                        n_bad += 1
+                    a[r, c] = xu / m - t0
+                    b[r, c] = yu / m - t1
     return n_bad
 
 
