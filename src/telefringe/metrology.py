@@ -1014,6 +1014,9 @@ class BGAMeasurement:
     pitch_error_max : float, mm, largest |pitch - nominal|.
     coplanarity : Coplanarity (JEDEC seating plane).
     grid_angle_deg : float, the grid's rotation on the substrate.
+    psf_variance, sigma_psf_variance : float, mm^2, the camera's point-spread variance
+        (per axis, on the object) estimated from the caps and its standard uncertainty,
+        when the caps were fitted with it (``psf_model``); else NaN.
     """
 
     index: np.ndarray
@@ -1037,6 +1040,8 @@ class BGAMeasurement:
     coplanarity: Coplanarity
     grid_angle_deg: float
     nominal: BGANominal
+    psf_variance: float = np.nan
+    sigma_psf_variance: float = np.nan
 
     def __post_init__(self):
         _readonly(self.index, self.centre, self.sigma_centre, self.refined, self.apex,
@@ -1296,11 +1301,151 @@ def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
     return f, free
 
 
+def _smoothing_shape(pts: np.ndarray, centre: np.ndarray, r: float, view: np.ndarray):
+    """Per point: cos of the surface tilt from facing the camera, and g = -lap(z) / 2.
+
+    For a sphere seen along ``view``, the depth below the top is z(rho) =
+    r - sqrt(r^2 - rho^2) (rho across the viewing direction); a camera whose point spread
+    has variance s^2 (mm^2, per axis, on the object) measures the spread-averaged depth,
+    deeper by s^2 g to first order, g = lap(z) / 2 = (2 r^2 - rho^2) / (2 (r^2 -
+    rho^2)^(3/2)) (1 / mm). ``g`` is clipped at 80 deg of tilt.
+    """
+    v = pts - centre
+    along = v @ view
+    rho2 = np.maximum(np.sum(v * v, axis=1) - along**2, 0.0)
+    rho2 = np.minimum(rho2, (r * np.sin(np.radians(80.0))) ** 2)
+    g = (2.0 * r * r - rho2) / (2.0 * (r * r - rho2) ** 1.5)
+    nn = v / np.linalg.norm(v, axis=1)[:, None]
+    return np.clip(nn @ view, 1e-3, 1.0), g
+
+
+def _brightness_gradient_term(cloud: PointCloud, image: np.ndarray, projector,
+                              px_mm: float) -> np.ndarray:
+    """(rows, cols) depth shift per unit point-spread variance from brightness gradients.
+
+    A camera pixel averages the projector coordinate u_P over its point spread weighted
+    by the brightness I, so where I varies the average is taken around a point moved by
+    s^2 grad(ln I) (s^2 the spread's variance, px^2): u_P is off by s^2 grad(ln I) .
+    grad(u_P), which moves the point along its camera line by that over du_P/dt. Returned
+    in mm of depth (along the viewing direction) per mm^2 of s^2 on the object (u fringes;
+    the v axis adds little depth information and is left out). NaN where unknown.
+    """
+    d = np.asarray(cloud.direction, dtype=np.float64)
+    xyz = np.where(cloud.mask[..., None], cloud.xyz, np.nan)
+    up, _ = projector.project(xyz)
+    up = np.asarray(up, dtype=np.float64)
+    x0 = np.nanmedian(xyz.reshape(-1, 3), axis=0)
+    du_dt = float((np.asarray(projector.project(x0 + 0.01 * d)[0])
+                   - np.asarray(projector.project(x0)[0])) / 0.01)  # px / mm
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ln_i = np.log(np.where(image > 0, image, np.nan))
+    gi_v, gi_u = np.gradient(ln_i)
+    gu_v, gu_u = np.gradient(up)
+    return (gi_u * gu_u + gi_v * gu_v) / du_dt / px_mm**2
+
+
+def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: float,
+                       sub_every: int = 3, rounds: int = 6):
+    """Fixed-radius cap fits that model the camera's point spread, and its variance.
+
+    ``caps``: list of (pts (m, 3), sig (m,), c (m,)) per ball. The points of each ball are
+    moved up the viewing direction by s^2 (g + c) (g: see :func:`_smoothing_shape`; c:
+    the per-pixel term of the brightness gradient, 1 / mm, 0 when unknown) and fitted with a
+    sphere of radius ``r`` weighted by 1 / (sigma_line cos(tilt))^2; s^2, common to every
+    ball (one camera), is estimated by Gauss-Newton on all balls' residuals at once
+    (Schur complement of the per-ball centres), on every ``sub_every``-th ball.
+
+    Returns (fits (list of SphereFit or None), s2 (mm^2), sigma_s2 (mm^2)).
+    """
+    cos_min = np.cos(np.radians(max_view_angle_deg))
+    sel = []
+    for pts, sig, cg in caps:
+        ok = np.all(np.isfinite(pts), axis=1) & np.isfinite(sig) & (sig > 0) & np.isfinite(cg)
+        pts, sig, cg = pts[ok], sig[ok], cg[ok]
+        if pts.shape[0] < 10:
+            sel.append(None)
+            continue
+        try:
+            f0 = fit_sphere(pts, robust=True, radius=r)
+        except MetrologyError:
+            sel.append(None)
+            continue
+        cos_t, _ = _smoothing_shape(pts, f0.centre, r, view)
+        keep = cos_t >= cos_min
+        if np.count_nonzero(keep) < 10:
+            sel.append(None)
+            continue
+        sel.append((pts[keep], sig[keep], cg[keep], f0.centre))
+
+    def fit_one(item, s2):
+        pts, sig, cg, c = item
+        cos_t, g = _smoothing_shape(pts, c, r, view)
+        g = g + cg
+        q = pts + np.outer(s2 * g, view)  # moved up, toward the camera
+        w = 1.0 / (sig * cos_t) ** 2
+        f = fit_sphere(q, weights=w, robust=True, radius=r)
+        return f, q, w, g
+
+    s2 = 0.0
+    var_s2 = np.inf
+    sub = [k for k, it in enumerate(sel) if it is not None][::max(int(sub_every), 1)]
+    for _ in range(rounds):
+        num = den = chi2 = 0.0
+        dof = 0
+        for k in sub:
+            try:
+                f, q, w, g = fit_one(sel[k], s2)
+            except MetrologyError:
+                continue
+            m = f.inliers
+            v = q[m] - f.centre
+            dist = np.linalg.norm(v, axis=1)
+            nn = v / dist[:, None]
+            res = dist - r
+            wk = w[m]
+            J = -nn  # d res / d centre
+            kk = g[m] * (nn @ view)  # d res / d s2
+            H = J.T @ (wk[:, None] * J)
+            mv = J.T @ (wk * kk)
+            try:
+                Hi_m = np.linalg.solve(H, mv)
+            except np.linalg.LinAlgError:
+                continue
+            num += float(kk @ (wk * res) - Hi_m @ (J.T @ (wk * res)))
+            den += float(kk @ (wk * kk) - mv @ Hi_m)
+            chi2 += float(res @ (wk * res))
+            dof += res.size - 3
+        if not den > 0:
+            break
+        step = -num / den
+        s2 += step
+        var_s2 = chi2 / max(dof - 1, 1) / den
+        if abs(step) < 1e-3 * max(abs(s2), 1e-9):
+            break
+    fits = []
+    for it in sel:
+        if it is None:
+            fits.append(None)
+            continue
+        try:
+            fits.append(fit_one(it, s2)[0])
+        except MetrologyError:
+            fits.append(None)
+    return fits, float(s2), float(np.sqrt(var_s2)) if np.isfinite(var_s2) else np.nan
+
+
+def _sigma_weights(cloud: PointCloud, sel: np.ndarray):
+    """1 / sigma_z^2 of the selected points, or None when some are unknown."""
+    s = cloud.sigma_z[sel]
+    return 1.0 / s**2 if np.all(np.isfinite(s) & (s > 0)) else None
+
+
 def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
                 min_height: float | None = None, min_fraction: float = 0.2,
                 edge_px: int | None = None, cap_min_height: float | None = None,
                 weighted: bool = False, max_view_angle_deg: float | None = None,
                 highlight_px: float = 0.0, fixed_radius: bool = False,
+                psf_model: bool = False, projector=None, substrate_margin: float | None = None,
                 seed: int = 0) -> BGAMeasurement:
     """Inspect a ball grid array from its point cloud.
 
@@ -1343,6 +1488,23 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
     fixed_radius : bool
         Fit every cap with the nominal radius (an assumption: the balls are spheres of
         the nominal diameter); the diameter is then not reported.
+    psf_model : bool
+        Fit the caps with the nominal radius and a model of the camera's point spread:
+        a pixel measures the spread-averaged surface, which on a convex cap lies deeper
+        than the surface (by s^2 lap(z) / 2, growing as the cap tilts away), and where
+        the brightness varies the average is taken off-centre (by s^2 grad(ln I), which
+        needs ``image`` and ``projector``). The spread's variance s^2 (one camera, so one
+        value for every ball) is estimated from the caps themselves (reported as
+        ``psf_variance``); points tilted more than ``max_view_angle_deg`` (default 60)
+        from facing the camera are dropped, every point is weighted by 1 / sigma_r^2.
+    projector : TelecentricDevice, optional
+        The (calibrated) projector: gives the projector coordinate of each point and its
+        rate along the camera line, for the brightness-gradient term of ``psf_model``.
+    substrate_margin : float, optional
+        The substrate plane is refitted on points farther than this (mm, default D / 2)
+        from every ball region (next to a ball the substrate's points are biased by its
+        shadow edge and the light of its flank spread by the camera); 0 keeps the first
+        fit on all points.
     seed : seeds the robust substrate fit.
 
     Returns
@@ -1371,11 +1533,27 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
     foot = np.pi * (D / 2) ** 2 / px_mm**2 if np.isfinite(px_mm) else 0.0
     if edge_px is None:
         edge_px = 1 if (np.isfinite(px_mm) and D / px_mm >= 10.0) else 0
+    margin = 0.5 * D if substrate_margin is None else float(substrate_margin)
+    if margin > 0 and np.isfinite(px_mm):
+        # refit the substrate away from the balls: next to a ball the substrate's points
+        # are biased (its shadow edge and its flank's light, spread by the camera)
+        near = ndimage.binary_dilation(above, iterations=max(int(np.ceil(margin / px_mm)), 1))
+        far = cloud.mask & ~near
+        if np.count_nonzero(far) >= max(100, 0.05 * cloud.count):
+            substrate = fit_plane(cloud.xyz[far], weights=_sigma_weights(cloud, far),
+                                  robust=True, seed=seed)
+            nrm = substrate.normal
+            h = np.where(cloud.mask, cloud.xyz @ nrm - substrate.offset, np.nan)
     sizes = np.bincount(labels.ravel(), minlength=n_lab + 1)
     slices = ndimage.find_objects(labels)
+    cgrad = None
+    if psf_model and projector is not None and image is not None and np.isfinite(px_mm):
+        cgrad = _brightness_gradient_term(cloud, np.asarray(image, np.float64), projector,
+                                          px_mm)
     fits = []
     regions = []
     free_r = []
+    caps = []
     view = -np.asarray(cloud.direction, dtype=np.float64)
     image_arr = None if image is None else np.asarray(image, dtype=np.float64)
     if image_arr is not None and image_arr.shape != cloud.shape:
@@ -1404,6 +1582,11 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
         sig = cloud.sigma_line[sl][sel]
         if pts.shape[0] < 10:
             continue
+        if psf_model:
+            caps.append((pts, sig, np.zeros(pts.shape[0]) if cgrad is None
+                         else cgrad[sl][sel]))
+            regions.append((sl, labels[sl] == lab))
+            continue
         try:
             f = _fit_cap(pts, sig, view, D, weighted=weighted,
                          max_view_angle_deg=max_view_angle_deg, fixed_radius=fixed_radius)
@@ -1415,6 +1598,16 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
         fits.append(f)
         free_r.append(free)
         regions.append((sl, labels[sl] == lab))
+    smoothing = (np.nan, np.nan)
+    if psf_model:
+        all_fits, s2, s_s2 = _fit_caps_smoothed(
+            caps, view, D / 2, max_view_angle_deg=(60.0 if max_view_angle_deg is None
+                                                   else float(max_view_angle_deg)))
+        smoothing = (s2, s_s2)
+        keep = [k for k, f in enumerate(all_fits) if f is not None and f.rms < 0.1 * D]
+        fits = [all_fits[k] for k in keep]
+        regions = [regions[k] for k in keep]
+        free_r = [False] * len(fits)
     if not fits:
         raise MetrologyError("no ball could be fitted")
     centre = np.array([f.centre for f in fits])
@@ -1478,7 +1671,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
         substrate=substrate, found=found, missing=missing, unexpected=unexpected,
         pitch_x=px, pitch_y=py,
         pitch_error_max=float(np.max(np.abs(errs))) if errs.size else np.nan,
-        coplanarity=cop, grid_angle_deg=float(np.degrees(theta)), nominal=nominal)
+        coplanarity=cop, grid_angle_deg=float(np.degrees(theta)), nominal=nominal,
+        psf_variance=float(smoothing[0]), sigma_psf_variance=float(smoothing[1]))
 
 
 # --------------------------------------------------------------------------------------

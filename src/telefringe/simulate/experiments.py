@@ -292,7 +292,12 @@ def run_bga(vrig: VirtualRig, rig: Rig, *, seed: int = 0, hdr: bool = True) -> B
                          ball_diameter_mm=bga.ball_diameter)
     # balls located by their specular highlights in the HDR radiance image (the offset
     # of highlight from ball centre is common to all balls: telecentric, collimated)
-    meas = measure_bga(rec.cloud, nominal, image=rec.radiance, seed=seed)
+    # caps: the nominal ball radius (the inspector's assumption: spheres of the nominal
+    # diameter), the camera's point spread modelled (its variance estimated from the
+    # caps), points within 2.5 px of the highlight (whose light the point spread carries
+    # into them, beyond first order) and tilted more than 60 deg dropped; see measure_bga
+    meas = measure_bga(rec.cloud, nominal, image=rec.radiance, seed=seed, psf_model=True,
+                       projector=rig.projector, highlight_px=2.5)
 
     # the truth, indexed like the measurement
     true_centres = bga.centres_world()
