@@ -44,6 +44,22 @@ def _dense_coefficients(harmonics, cos_coef, sin_coef):
     return d, ca, sa
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _series(phi, d, ca, sa):
+    """e(phi) and e'(phi) of the dense series (see :func:`_dense_coefficients`)."""
+    c1 = math.cos(d * phi)
+    s1 = math.sin(d * phi)
+    c = 1.0
+    s = 0.0
+    e = 0.0
+    de = 0.0
+    for k in range(1, ca.size):
+        c, s = c * c1 - s * s1, s * c1 + c * s1
+        e += ca[k] * c + sa[k] * s
+        de += (k * d) * (sa[k] * c - ca[k] * s)
+    return e, de
+
+
 @nb.njit(cache=True, nogil=True, parallel=True)
 def harmonic_sum(phase, harmonics, cos_coef, sin_coef, out):
     """``out[i] = sum_m cos_coef[m] cos(h_m phase[i]) + sin_coef[m] sin(h_m phase[i])``.
@@ -52,17 +68,8 @@ def harmonic_sum(phase, harmonics, cos_coef, sin_coef, out):
     (k,) float64, rad.
     """
     d, ca, sa = _dense_coefficients(harmonics, cos_coef, sin_coef)
-    kmax = ca.size - 1
     for i in nb.prange(phase.size):
-        c1 = math.cos(d * phase[i])
-        s1 = math.sin(d * phase[i])
-        c = 1.0
-        s = 0.0
-        acc = 0.0
-        for h in range(1, kmax + 1):
-            c, s = c * c1 - s * s1, s * c1 + c * s1
-            acc += ca[h] * c + sa[h] * s
-        out[i] = acc
+        out[i] = _series(phase[i], d, ca, sa)[0]
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -91,16 +98,7 @@ def invert_harmonic(measured, harmonics, cos_coef, sin_coef, start, out):
         x = measured[i]
         phi = start[i] if warm else x
         for it in range(62):
-            c1 = math.cos(d * phi)
-            s1 = math.sin(d * phi)
-            c = 1.0
-            s = 0.0
-            e = 0.0
-            de = 0.0
-            for k in range(1, kmax + 1):
-                c, s = c * c1 - s * s1, s * c1 + c * s1
-                e += ca[k] * c + sa[k] * s
-                de += (k * d) * (sa[k] * c - ca[k] * s)
+            e, de = _series(phi, d, ca, sa)
             if it == 0 and not warm:
                 phi = x - e  # the start, as e is evaluated at the measured phase
                 continue

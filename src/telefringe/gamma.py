@@ -497,7 +497,8 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None):
     if n_par == 0:
         return [PhaseErrorModel.zero(p) for p in per], 0.0, 0, None
     max_it = max(2, iterations + 2)
-    stride = max(1, samp[0].size // 20_000)
+    # (a start from a fit with more harmonics is already close: no subsample phase)
+    stride = max(1, samp[0].size // 20_000) if start is None else 1
     if stride > 1:
         sub = [x[::stride] for x in samp]
         sub_pairs = [(a, b, r, *(None if v is None else np.asarray(v)[::stride]
