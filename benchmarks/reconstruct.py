@@ -1,23 +1,41 @@
 """Reconstruction speed: scan folder (12 images 1280 x 1024) + rig -> points.
 
 Usage: python benchmarks/reconstruct.py [--runs 5] [--scene tilted-plane] [--keep DIR]
+                                        [--no-cold-start]
 
 Renders one scan of the paper rig (4 steps x 1/8/64 periods along u, no white/black: 12
 images of 1280 x 1024, 8 bit), writes it as a scan folder with the TRUE rig's rig.json,
-then prints, as the median of ``--runs`` runs after a warm-up:
+then prints the load average (the machine is shared: figures move with it) and, as the
+median of ``--runs`` runs after a warm-up:
 
-- the time of each stage in-process: reading the 12 PNGs, decoding (with and without
-  the data-driven gamma correction), triangulation (per-rig set-up cached, and the
-  set-up itself), height map, writing the outputs;
-- megapixels (camera pixels) per second for triangulation alone, decode + triangulate
-  from images in memory, and read + decode + triangulate from the folder;
-- the cold-start time of ``telefringe reconstruct`` for one scan (a new process, numba
-  caches warm), and of ``python -c "import telefringe.cli"`` alone.
+- the time of each stage in-process: reading the 12 PNGs, decoding (with and without the
+  data-driven gamma correction), the per-rig set-up (once per rig and image size),
+  triangulation, height map, writing the outputs;
+- megapixels (camera pixels) per second for triangulation alone and for decode +
+  triangulate from images in memory, with and without the gamma correction;
+- the cold start of ``telefringe reconstruct`` for one scan (a new process, numba caches
+  warm), with and without the gamma correction, and its split by stage.
+
+What bounds each figure:
+
+- triangulation: memory traffic. Per pixel the u-only kernel reads the line offsets a, b,
+  u_p, sigma_u_p and the mask (33 B) and writes x, y, z, sigma and the flags and mask
+  bytes (34 B): ~88 MB per 1.3 Mpx scan. The "memory floor" line copies the same number
+  of bytes (a (n, 4) float64 array into another) for scale; the arithmetic (two
+  divisions, ~150 flops per pixel, vectorised, 2 threads) costs about as much again.
+  The per-rig set-up (undistorting every camera pixel) is paid once per rig and shape.
+- decode + triangulate: decoding (telefringe.decode: wrapped phase, unwrapping and, by
+  default, fitting and removing the projector's gamma from the fringes); triangulation is
+  a few percent of it.
+- cold start: Python + numpy + typer/rich imports, numba's start-up and the loading of the
+  cached kernels, reading the PNGs, decoding, and matplotlib (import and drawing) for
+  heightmap.png; see the split.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import subprocess
 import sys
@@ -38,15 +56,14 @@ def _median_time(fn, runs):
     return statistics.median(ts), out
 
 
-def _write_rig(path: Path, rig) -> bool:
-    """A hand-made rig.json of the true rig (no calibration report); False when this
-    telefringe has no rig.json reader."""
+def _load() -> str:
+    return "load average " + ", ".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+def _write_rig(path: Path, rig) -> None:
+    """A hand-made rig.json of the true rig (no calibration report)."""
     import json
 
-    try:
-        from telefringe.io import rig as rig_io  # noqa: F401
-    except ImportError:
-        return False
     from telefringe.model import rotvec_from_rotation
 
     def dev(d):
@@ -60,7 +77,53 @@ def _write_rig(path: Path, rig) -> bool:
     path.write_text(json.dumps({"format": "telefringe-rig", "version": 1,
                                 "world_frame": {"reference_pose": "truth"},
                                 "camera": dev(rig.camera), "projector": dev(rig.projector)}))
-    return True
+
+
+# The cold start split: what 'telefringe reconstruct' does, stage by stage, in a new process
+_SPLIT = r"""
+import sys, time
+t0 = time.perf_counter()
+marks = []
+def mark(name):
+    marks.append((name, time.perf_counter()))
+import telefringe.cli
+from telefringe.io.rig import load_rig
+from telefringe.io.scan import read_scan
+from telefringe.decode import decode
+from telefringe.reconstruct import triangulate, height_map
+from telefringe.io import export
+mark("imports (cli, rig.json reader, decode, reconstruct)")
+import numba
+numba.njit(lambda: 0)()
+mark("numba start-up")
+rig = load_rig(sys.argv[1]).rig
+data = read_scan(sys.argv[2])
+mark("read rig.json + 12 PNGs")
+gamma = sys.argv[4] == "1"
+coords = decode(data, gamma_correction=gamma)
+mark("decode " + ("with" if gamma else "without") + " the gamma fit")
+cloud = triangulate(rig, coords)
+mark("triangulate (incl. per-rig set-up)")
+hm = height_map(cloud)
+mark("height map")
+from telefringe.cli.reconstruct import _preview
+out = sys.argv[3]
+export.write_points(out + "/points.npz", cloud)
+mark("write points.npz")
+export.write_ply(out + "/cloud.ply", cloud)
+mark("write cloud.ply")
+export.write_height_tiff(out + "/heightmap.tif", hm)
+mark("write heightmap.tif")
+import matplotlib.figure, matplotlib.backends.backend_agg
+mark("import matplotlib")
+export.write_height_png(out + "/heightmap.png", _preview(hm))
+mark("draw + write heightmap.png")
+prev = t0
+for name, t in marks:
+    print(f"    {name:<44s} {t - prev:6.2f} s")
+    prev = t
+print(f"    {'total (after the interpreter started)':<44s} {prev - t0:6.2f} s")
+"""
 
 
 def main() -> None:
@@ -68,12 +131,15 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--scene", default="tilted-plane")
     ap.add_argument("--keep", type=Path, default=None, help="Keep the scan folder here.")
+    ap.add_argument("--no-cold-start", action="store_true",
+                    help="Skip the cold-start runs (new processes).")
     args = ap.parse_args()
 
     import numba
 
+    from telefringe.cli.reconstruct import _preview
     from telefringe.decode import decode
-    from telefringe.io.export import write_reconstruction
+    from telefringe.io import export
     from telefringe.io.scan import read_scan, write_scan
     from telefringe.reconstruct import Triangulator, height_map, triangulate
     from telefringe.simulate.presets import get_preset
@@ -92,9 +158,10 @@ def main() -> None:
     root.mkdir(parents=True, exist_ok=True)
     folder = root / "scan"
     write_scan(folder, scan, force=True)
-    has_rig_json = _write_rig(root / "rig.json", vrig.rig)
+    _write_rig(root / "rig.json", vrig.rig)
     print(f"paper rig, scene {args.scene}: {n_img} images of {cols} x {rows} "
-          f"({mpx:.2f} Mpx), {numba.get_num_threads()} threads, median of {args.runs} runs")
+          f"({mpx:.2f} Mpx), {numba.get_num_threads()} threads, median of {args.runs} runs, "
+          f"{os.cpu_count()} CPUs, {_load()}")
 
     # warm-up (numba caches load, per-rig set-up cached)
     data = read_scan(folder)
@@ -108,27 +175,35 @@ def main() -> None:
                                        args.runs)
     t_setup, _ = _median_time(lambda: Triangulator.for_shape(vrig.rig, (rows, cols)),
                               args.runs)
-    t_tri, cloud = _median_time(lambda: triangulate(vrig.rig, coords), args.runs)
-    t_hm, hm = _median_time(lambda: height_map(cloud), args.runs)
-    # CPU time on one thread: a figure that other jobs on the machine do not inflate
+    runs_tri = max(args.runs, 9)
+    t_tri, cloud = _median_time(lambda: triangulate(vrig.rig, coords), runs_tri)
+    # the same bytes as the kernel moves, copied: (n, 4) float64 in and out
+    src_dst = (np.ones((rows * cols, 4)), np.empty((rows * cols, 4)))
+    t_floor, _ = _median_time(lambda: np.copyto(src_dst[1], src_dst[0]), runs_tri)
+    # CPU time on one thread: a figure that other jobs on the machine inflate less
     n_thr = numba.get_num_threads()
     numba.set_num_threads(1)
     cpu = []
-    for _ in range(max(args.runs, 5)):
+    for _ in range(runs_tri):
         t0 = time.process_time()
         triangulate(vrig.rig, coords)
         cpu.append(time.process_time() - t0)
     numba.set_num_threads(n_thr)
-    t_cpu = min(cpu)
+    t_cpu = statistics.median(cpu)
+    t_hm, hm = _median_time(lambda: height_map(cloud), args.runs)
 
     def write():
         with tempfile.TemporaryDirectory() as d:
-            write_reconstruction(d, cloud, hm, texture=None)
+            d = Path(d)
+            export.write_points(d / "points.npz", cloud)
+            export.write_ply(d / "cloud.ply", cloud)
+            export.write_height_tiff(d / "heightmap.tif", hm)
+            export.write_height_png(d / "heightmap.png", _preview(hm))
 
     t_write, _ = _median_time(write, max(1, args.runs // 2))
 
     def line(name, t, n_mpx=mpx):
-        print(f"  {name:<44s} {t * 1000:8.1f} ms  {n_mpx / t:8.1f} Mpx/s")
+        print(f"  {name:<48s} {t * 1000:8.1f} ms  {n_mpx / t:8.1f} Mpx/s")
 
     print("stages:")
     line(f"read {n_img} PNG images", t_read)
@@ -136,55 +211,43 @@ def main() -> None:
     line("decode (gamma correction off)", t_dec_ng)
     line("per-rig set-up (Triangulator, once per rig)", t_setup)
     line("triangulate (set-up cached)", t_tri)
-    line("triangulate, CPU time on 1 thread (best)", t_cpu)
+    line("triangulate, CPU time on 1 thread", t_cpu)
+    line("memory floor: copy the kernel's bytes", t_floor)
     line("height map", t_hm)
     line("write points.npz, PLY, TIFF, PNG", t_write)
-    print("end to end:")
-    line("triangulate only", t_tri)
-    line("decode + triangulate (images in memory)", t_dec + t_tri)
-    line("decode (no gamma corr.) + triangulate", t_dec_ng + t_tri)
-    line("read + decode + triangulate (from folder)", t_read + t_dec + t_tri)
+    print(f"end to end ({_load()}):")
+    line("triangulation alone", t_tri)
+    line("decode + triangulate (gamma correction on)", t_dec + t_tri)
+    line("decode + triangulate (gamma correction off)", t_dec_ng + t_tri)
+    line("read + decode + triangulate (gamma on)", t_read + t_dec + t_tri)
     print(f"  valid points: {cloud.count} ({cloud.count / (rows * cols):.1%}), median sigma_z "
           f"{np.nanmedian(cloud.sigma_z) * 1000:.2f} um")
 
-    imp = []
-    for _ in range(3):
-        t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-c", "import telefringe.cli"], check=True)
-        imp.append(time.perf_counter() - t0)
-    print(f"cold start: python -c 'import telefringe.cli': {statistics.median(imp):.2f} s")
-    if has_rig_json:
+    if not args.no_cold_start:
+        imp = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "-c", "import telefringe.cli"], check=True)
+            imp.append(time.perf_counter() - t0)
+        print(f"cold start ({_load()}), median of 3:")
+        print(f"  python -c 'import telefringe.cli': {statistics.median(imp):.2f} s")
         exe = [sys.executable, "-m", "telefringe.cli"]
         cmd = exe + ["-q", "reconstruct", str(folder), "--rig", str(root / "rig.json"),
                      "-o", str(root / "out"), "--force"]
-        ts = []
-        for _ in range(3):
-            t0 = time.perf_counter()
-            subprocess.run(cmd, check=True)
-            ts.append(time.perf_counter() - t0)
-        cmd_ng = cmd + ["--no-gamma-correction", "--no-ply"]
-        t0 = time.perf_counter()
-        subprocess.run(cmd_ng, check=True)
-        t_ng = time.perf_counter() - t0
-        print(f"cold start: telefringe reconstruct (one scan, all outputs): "
-              f"{statistics.median(ts):.2f} s (runs: {', '.join(f'{t:.2f}' for t in ts)})")
-        print(f"cold start: ... --no-gamma-correction --no-ply: {t_ng:.2f} s")
-    else:
-        # no rig.json writer yet: the same work in a fresh process, the rig from the preset
-        code = ("import sys; from telefringe.cli.reconstruct import reconstruct_to_folder; "
-                "from telefringe.simulate.presets import get_preset; "
-                "from telefringe.cli._common import state; state.quiet = True; "
-                "reconstruct_to_folder(sys.argv[1], get_preset('paper').rig, sys.argv[2], "
-                "force=True)")
-        ts = []
-        for _ in range(3):
-            t0 = time.perf_counter()
-            subprocess.run([sys.executable, "-c", code, str(folder), str(root / "out")],
-                           check=True)
-            ts.append(time.perf_counter() - t0)
-        print("cold start: reconstruct_to_folder in a new process (what 'telefringe "
-              "reconstruct' does; no rig.json writer in telefringe.io.rig yet): "
-              f"{statistics.median(ts):.2f} s (runs: {', '.join(f'{t:.2f}' for t in ts)})")
+        for label, extra in (("", []), (" --no-gamma-correction", ["--no-gamma-correction"])):
+            ts = []
+            for _ in range(3):
+                t0 = time.perf_counter()
+                subprocess.run(cmd + extra, check=True)
+                ts.append(time.perf_counter() - t0)
+            print(f"  telefringe reconstruct{label} (all outputs): "
+                  f"{statistics.median(ts):.2f} s (runs: {', '.join(f'{t:.2f}' for t in ts)})")
+        for gamma in ("0", "1"):
+            print(f"  split ({'with' if gamma == '1' else 'without'} the gamma fit, one run, "
+                  f"{_load()}):")
+            with tempfile.TemporaryDirectory() as d:
+                subprocess.run([sys.executable, "-c", _SPLIT, str(root / "rig.json"),
+                                str(folder), d, gamma], check=True)
     tmpdir.cleanup()
 
 

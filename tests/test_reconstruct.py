@@ -470,3 +470,27 @@ def test_height_map_holes_and_errors():
         height_map(cloud, pixel_mm=1e-5)
     with pytest.raises(TriangulationError, match="fewer than 3"):
         height_map(PointCloud.from_xyz(np.full((4, 4, 3), np.nan)))
+
+
+def test_binned_height_map():
+    z = np.arange(35, dtype=np.float32).reshape(5, 7)
+    z[0, 0] = np.nan
+    z[3:5, 3:6] = np.nan  # a hole: the (partial, edge) block [2, 2] all NaN, others in part
+    hm = HeightMap(z, 10.0, 20.0, 0.5, sigma_z=np.full((5, 7), 0.002, np.float32))
+    b = hm.binned(2)
+    assert b.z.shape == (3, 4) and b.pixel_mm == 1.0
+    # each binned pixel sits at the centre of its block
+    assert b.x[0] == pytest.approx(hm.x[:2].mean()) and b.y[0] == pytest.approx(hm.y[:2].mean())
+    for i in range(3):
+        for j in range(4):
+            block = z[2 * i:2 * i + 2, 2 * j:2 * j + 2]
+            fin = block[np.isfinite(block)]
+            if fin.size:
+                assert b.z[i, j] == pytest.approx(fin.mean())
+            else:
+                assert np.isnan(b.z[i, j])
+    assert np.isnan(b.z[2, 2]) and b.z[0, 0] == pytest.approx((1 + 7 + 8) / 3)
+    np.testing.assert_allclose(b.sigma_z[np.isfinite(b.z)], 0.002, rtol=1e-6)
+    assert hm.binned(1) is hm
+    with pytest.raises(TriangulationError, match="factor"):
+        hm.binned(0)

@@ -945,6 +945,36 @@ class HeightMap:
         return (self.x0 - p / 2, self.x0 + (w - 0.5) * p, self.y0 - (h - 0.5) * p,
                 self.y0 + p / 2)
 
+    def binned(self, factor: int) -> HeightMap:
+        """The map on a grid ``factor`` times coarser: each pixel the mean of the valid
+        pixels of its ``factor x factor`` block (NaN where none is), e.g. for a preview.
+
+        The block [0, 0] starts at this map's pixel [0, 0]; the edges' partial blocks
+        average what they hold. ``sigma_z`` is averaged likewise (an upper bound on the
+        uncertainty of the mean, whose errors are correlated along the camera lines).
+        """
+        f = int(factor)
+        if f < 1:
+            raise TriangulationError(f"factor must be a positive integer, got {factor!r}")
+        if f == 1:
+            return self
+        p = self.pixel_mm
+        return HeightMap(_block_mean(self.z, f), self.x0 + (f - 1) / 2 * p,
+                         self.y0 - (f - 1) / 2 * p, f * p,
+                         None if self.sigma_z is None else _block_mean(self.sigma_z, f))
+
+
+def _block_mean(z, f):
+    h, w = z.shape
+    hp, wp = -(-h // f) * f, -(-w // f) * f
+    zp = np.full((hp, wp), np.nan)
+    zp[:h, :w] = z
+    blocks = zp.reshape(hp // f, f, wp // f, f)
+    fin = np.isfinite(blocks)
+    n = fin.sum(axis=(1, 3))
+    total = np.where(fin, blocks, 0.0).sum(axis=(1, 3))
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan).astype(np.float32)
+
 
 def height_map(cloud: PointCloud, *, pixel_mm: float | None = None,
                max_pixels: int = 64_000_000) -> HeightMap:
