@@ -117,305 +117,480 @@ def table_correct(phase, table, out):
 
 
 # ------------------------------------------------------------------- fused fast decoding
-#: atan(a) = a P(a^2) on [0, 1]: Chebyshev least-squares fit of degree 10 in a^2, power
-#: basis. Largest error 1.3e-9 rad (tests/test_decode_fast.py checks <= 1e-6 densely).
-ATAN_COEF = (0.9999999997078739, -0.3333332567970671, 0.1999966704637836,
-             -0.1428001870079002, 0.1106046634753856, -0.08822430509150758,
-             0.06772961148703784, -0.04519965252518872, 0.023025548295370343,
-             -0.007569207294537762, 0.0011682799386918791)
-_A0, _A1, _A2, _A3, _A4, _A5, _A6, _A7, _A8, _A9, _A10 = ATAN_COEF
-_HALF_PI = 0.5 * math.pi
+# Written so that LLVM vectorises every inner loop (checked in the assembly, see
+# tests/test_decode_fast.py): straight loops over contiguous 1-D scratch rows, float32
+# where it is exact or bounded, float32 constants only in float32 maths, selects instead
+# of branches, error_model="numpy" (no division checks). No fastmath: the compiler keeps
+# the order and rounding of every operation.
 
-
-@nb.njit(inline="always", error_model="numpy")
-def atan2_poly(y, x):
-    """atan2(y, x) in (-pi, pi] from a polynomial arctangent (branch-free)."""
-    ax = abs(x)
-    ay = abs(y)
-    mx = max(ax, ay)
-    mn = min(ax, ay)
-    a = mn / mx if mx > 0.0 else 0.0
-    s = a * a
-    p = _A10
-    p = p * s + _A9
-    p = p * s + _A8
-    p = p * s + _A7
-    p = p * s + _A6
-    p = p * s + _A5
-    p = p * s + _A4
-    p = p * s + _A3
-    p = p * s + _A2
-    p = p * s + _A1
-    p = p * s + _A0
-    r = a * p
-    r = _HALF_PI - r if ay > ax else r
-    r = math.pi - r if x < 0.0 else r
-    r = -r if y < 0.0 else r
-    return math.pi if r <= -math.pi else r
-
-
+#: atan(a) = a P(a^2) on [0, 1]: degree 7 in a^2, near-minimax (iteratively reweighted
+#: least squares). Largest error 3.7e-8 rad in exact arithmetic, 1.4e-7 rad evaluated in
+#: float32; tests/test_decode_fast.py checks atan2 <= 1e-6 rad (float32 inputs).
+ATAN_COEF = (0.9999993354078233, -0.3332986012082683, 0.19946558251138288,
+             -0.13908593381142703, 0.09642106969730993, -0.05591112162408767,
+             0.02186214122736897, -0.004054346256421718)
+_C0, _C1, _C2, _C3, _C4, _C5, _C6, _C7 = (np.float32(c) for c in ATAN_COEF)
 _F32 = np.float32
-_B0, _B1, _B2, _B3, _B4, _B5, _B6, _B7, _B8, _B9, _B10 = (np.float32(c) for c in ATAN_COEF)
 _HALF_PI32 = np.float32(0.5 * math.pi)
 _PI32 = np.float32(math.pi)
+_TWO_PI32 = np.float32(TWO_PI)
 _ZERO32 = np.float32(0.0)
+_ONE32 = np.float32(1.0)
 
 
 @nb.njit(inline="always", error_model="numpy")
 def atan2_poly32(y, x):
-    """float32 :func:`atan2_poly` (for exact float32 inputs; error <= 1e-6 rad, tested)."""
+    """atan2(y, x) in (-pi, pi] of float32 y, x by a polynomial (branch-free; the
+    atan2(-0.0, x < 0) = -pi case, like every -pi, is returned as pi)."""
     ax = abs(x)
     ay = abs(y)
-    mx = max(ax, ay)
-    mn = min(ax, ay)
-    a = mn / mx if mx > _ZERO32 else _ZERO32
+    swap = ay > ax
+    mx = ay if swap else ax
+    mn = ax if swap else ay
+    a = mn / (mx if mx > _ZERO32 else _ONE32)
     s = a * a
-    p = _B10
-    p = p * s + _B9
-    p = p * s + _B8
-    p = p * s + _B7
-    p = p * s + _B6
-    p = p * s + _B5
-    p = p * s + _B4
-    p = p * s + _B3
-    p = p * s + _B2
-    p = p * s + _B1
-    p = p * s + _B0
+    p = _C7
+    p = p * s + _C6
+    p = p * s + _C5
+    p = p * s + _C4
+    p = p * s + _C3
+    p = p * s + _C2
+    p = p * s + _C1
+    p = p * s + _C0
     r = a * p
-    r = _HALF_PI32 - r if ay > ax else r
+    r = _HALF_PI32 - r if swap else r
     r = _PI32 - r if x < _ZERO32 else r
     r = -r if y < _ZERO32 else r
     return _PI32 if r <= -_PI32 else r
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
 def atan2_poly32_array(y, x, out):
-    """Vectorised :func:`atan2_poly32` over 1-D float32 arrays (for tests)."""
+    """:func:`atan2_poly32` over 1-D float32 arrays (for tests)."""
     for i in range(y.size):
         out[i] = atan2_poly32(y[i], x[i])
 
 
-@nb.njit(cache=True, error_model="numpy")
-def atan2_poly_array(y, x, out):
-    """Vectorised :func:`atan2_poly` over 1-D arrays (for tests)."""
-    for i in range(y.size):
-        out[i] = atan2_poly(y[i], x[i])
+@nb.njit(inline="always", error_model="numpy")
+def _table_index(p, tab_scale, m_tab):
+    """Cell index and fraction of float32 phase p in (-pi, pi] on a periodic table of
+    m_tab samples at -pi + 2 pi j / m_tab."""
+    t = (p + _PI32) * tab_scale
+    i0 = np.int32(t)  # 0 <= t <= m_tab: truncation is the floor
+    f = t - _F32(i0)
+    i0 = i0 if i0 < m_tab else i0 - m_tab  # periodic: phase pi is phase -pi
+    i1 = i0 + 1
+    i1 = i1 if i1 < m_tab else i1 - m_tab
+    return i0, i1, f
+
+
+@nb.njit(inline="always", error_model="numpy")
+def _table_correct32(ph, tab, tab_scale, nj):
+    """ph = wrap(ph - g(ph)) in place, g linearly interpolated (float32 table)."""
+    m_tab = tab.size
+    for j in range(nj):
+        p = ph[j]
+        i0, i1, f = _table_index(p, tab_scale, m_tab)
+        g0 = tab[i0]
+        q = p - (g0 + f * (tab[i1] - g0))
+        q = q - _TWO_PI32 if q > _PI32 else q
+        ph[j] = q + _TWO_PI32 if q <= -_PI32 else q
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
+def table_correct32_array(phase, table, out):
+    """The fused kernel's float32 table correction over a 1-D float32 array (for tests):
+    out = wrap(phase - g(phase)), g from ``table`` (float32, periodic)."""
+    out[:] = phase
+    _table_correct32(out, table, _F32(table.size / TWO_PI), out.size)
 
 
 @nb.njit(inline="always")
-def _accumulate4(row0, row1, row2, row3, a0, a1, a2, a3, b0, b1, b2, b3, j0, j1, s_acc,
-                 c_acc, top):
-    """Add 4 steps' weighted samples of columns j0..j1 to the sums (vectorised over j)."""
-    for j in range(j0, j1):
-        v0 = float(row0[j])
-        v1 = float(row1[j])
-        v2 = float(row2[j])
-        v3 = float(row3[j])
-        s_acc[j - j0] += (a0 * v0 + a1 * v1) + (a2 * v2 + a3 * v3)
-        c_acc[j - j0] += (b0 * v0 + b1 * v1) + (b2 * v2 + b3 * v3)
-        top[j - j0] = max(top[j - j0], max(max(v0, v1), max(v2, v3)))
+def _acc4_32(r0, r1, r2, r3, a0, a1, a2, a3, b0, b1, b2, b3, nj, s, c, top, first):
+    """Add 4 steps' weighted samples of columns j0..j0+nj to float32 sums s, c and the
+    running maximum ``top`` (input dtype); ``first`` starts them."""
+    if first:
+        for j in range(nj):
+            v0 = r0[j]
+            v1 = r1[j]
+            v2 = r2[j]
+            v3 = r3[j]
+            f0 = _F32(v0)
+            f1 = _F32(v1)
+            f2 = _F32(v2)
+            f3 = _F32(v3)
+            s[j] = (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
+            c[j] = (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
+            m01 = v0 if v0 > v1 else v1
+            m23 = v2 if v2 > v3 else v3
+            top[j] = m01 if m01 > m23 else m23
+    else:
+        for j in range(nj):
+            v0 = r0[j]
+            v1 = r1[j]
+            v2 = r2[j]
+            v3 = r3[j]
+            f0 = _F32(v0)
+            f1 = _F32(v1)
+            f2 = _F32(v2)
+            f3 = _F32(v3)
+            s[j] += (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
+            c[j] += (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
+            m01 = v0 if v0 > v1 else v1
+            m23 = v2 if v2 > v3 else v3
+            m = m01 if m01 > m23 else m23
+            t = top[j]
+            top[j] = m if m > t else t
 
 
 @nb.njit(inline="always")
-def _accumulate4_32(row0, row1, row2, row3, a0, a1, a2, a3, b0, b1, b2, b3, j0, j1, s_acc,
-                    c_acc, top):
-    """float32 :func:`_accumulate4` (exact when the weights are 0 or +-1)."""
-    for j in range(j0, j1):
-        v0 = _F32(row0[j])
-        v1 = _F32(row1[j])
-        v2 = _F32(row2[j])
-        v3 = _F32(row3[j])
-        s_acc[j - j0] += (a0 * v0 + a1 * v1) + (a2 * v2 + a3 * v3)
-        c_acc[j - j0] += (b0 * v0 + b1 * v1) + (b2 * v2 + b3 * v3)
-        top[j - j0] = max(top[j - j0], max(max(v0, v1), max(v2, v3)))
+def _acc4_64(r0, r1, r2, r3, a0, a1, a2, a3, b0, b1, b2, b3, nj, s, c, top, first):
+    """float64 :func:`_acc4_32` (any weights and samples)."""
+    if first:
+        for j in range(nj):
+            v0 = r0[j]
+            v1 = r1[j]
+            v2 = r2[j]
+            v3 = r3[j]
+            f0 = float(v0)
+            f1 = float(v1)
+            f2 = float(v2)
+            f3 = float(v3)
+            s[j] = (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
+            c[j] = (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
+            m01 = v0 if v0 > v1 else v1
+            m23 = v2 if v2 > v3 else v3
+            top[j] = m01 if m01 > m23 else m23
+    else:
+        for j in range(nj):
+            v0 = r0[j]
+            v1 = r1[j]
+            v2 = r2[j]
+            v3 = r3[j]
+            f0 = float(v0)
+            f1 = float(v1)
+            f2 = float(v2)
+            f3 = float(v3)
+            s[j] += (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
+            c[j] += (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
+            m01 = v0 if v0 > v1 else v1
+            m23 = v2 if v2 > v3 else v3
+            m = m01 if m01 > m23 else m23
+            t = top[j]
+            top[j] = m if m > t else t
+
+
+@nb.njit(inline="always")
+def _acc_plain(row, a, b, nj, sa, sb, sn, first):
+    """sa += a v, sb += b v, sn += v over one image row (float64; the full decode's
+    background and second-harmonic sums)."""
+    if first:
+        for j in range(nj):
+            v = float(row[j])
+            sa[j] = a * v
+            sb[j] = b * v
+            sn[j] = v
+    else:
+        for j in range(nj):
+            v = float(row[j])
+            sa[j] += a * v
+            sb[j] += b * v
+            sn[j] += v
 
 
 @nb.njit(inline="always", error_model="numpy")
-def _phase32(s_acc, c_acc, m2, ph, nj):
+def _to32(s64, c64, s, c, nj):
     for j in range(nj):
-        s = s_acc[j]
-        c = c_acc[j]
-        m2[j] = s * s + c * c
-        ph[j] = atan2_poly32(-s, c)
+        s[j] = _F32(s64[j])
+        c[j] = _F32(c64[j])
 
 
 @nb.njit(inline="always", error_model="numpy")
-def _widen(src32, dst64, nj):
+def _phase32(s, c, ph, m2, nj):
+    """Phase (polynomial atan2) and squared modulation sum S^2 + C^2, float32."""
     for j in range(nj):
-        dst64[j] = float(src32[j])
+        a = s[j]
+        b = c[j]
+        m2[j] = a * a + b * b
+        ph[j] = atan2_poly32(-a, b)
 
 
-@nb.njit(inline="always", error_model="numpy")
-def _unit_phase(ph, phi_abs, cut, nj):
-    for j in range(nj):
-        q = ph[j] + cut
-        phi_abs[j] = q - TWO_PI * np.floor(q * INV_TWO_PI) - cut
+@nb.njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract"})
+def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, cw, s2w, c2w,
+                 periods, length, tables, has_table, nf_tables, max_value, min_mod2,
+                 max_res, full, noise_c, noise_gain, block_rows, tile,
+                 out_u, out_mask, out_mod,
+                 out_sigma, out_bg, out_exp, out_sat, out_low, out_shadow, out_rel):
+    """One pass over the images of a hierarchical ladder (coarse to fine, the first level
+    one period), per camera pixel: each level's N-step sums, HDR choice between its
+    exposures, phase (polynomial atan2), optional nonlinearity correction (table),
+    hierarchical unwrapping with the residual check, inverse-variance combination, masks
+    (saturation, low modulation, residual, range).
 
+    Precision: sums exact in float32 where ``exact32`` (else float64, then rounded to
+    float32); phase, S^2 + C^2, unwrapping and the coarse levels' share of the combination
+    in float32; the finest level's absolute phase ``ph + 2 pi k`` and the result in
+    float64: x = x_fine + sum_l w_l (x_l - x_fine) / sum_l w_l.
 
-@nb.njit(inline="always", error_model="numpy")
-def _unwrap_step(ph, phi_abs, ratio, max_res, res_ok, nj):
-    for j in range(nj):
-        pred = phi_abs[j] * ratio
-        full = ph[j] + TWO_PI * np.floor((pred - ph[j]) * INV_TWO_PI + 0.5)
-        phi_abs[j] = full
-        res_ok[j] = abs(pred - full) <= max_res
+    Levels and members: level ``l`` is made of the stacks ``lev_first[l]`` to
+    ``lev_first[l + 1] - 1`` of ``stacks`` (its exposures, longest first); per pixel the
+    longest exposure with no sample at ``max_value`` is used (the longest when all are).
 
+    stacks : tuple of (N, rows, cols) arrays (one dtype).  exposure : (members,) float64.
+    exact32 : (members,) bool: integer samples and weights in {0, +-1/2, +-1}: the float32
+        sums are exact.  nsteps : (L,) int64.
+    sw32, cw32, sw, cw : (members, K) sin / cos weights (float32, float64), K a multiple
+        of 4, zero-padded.  s2w, c2w : (members, K) float64, second-harmonic weights.
+    periods : (L,) float64.  length : float, projector pixels.
+    tables : (L, M) float32 corrections g(measured phase); has_table : (L,) bool.
+    nf_tables : (L, M) float64 noise factors d(true)/d(measured) (full only).
+    min_mod2 : (L,) float32, thresholds on S^2 + C^2 (rounded up to float32).
+    max_res : float, rad.
+    full : bool. False: weights (p B)^2 and only out_u, out_mask, out_mod (B of the
+        finest level) are written. True: weights 1 / sigma_x^2 from the noise model
+        var = noise_c + noise_gain * max(quadrature level, 0) and every output.
+    out_* : (rows, cols) arrays (the unused ones may be (1, 1)): out_u, out_mod, out_sigma,
+        out_bg, out_exp float64; out_mask, out_sat, out_low, out_shadow, out_rel bool.
 
-@nb.njit(inline="always", error_model="numpy")
-def _mask_first(m2, top, thr, max_value, ok, nj):
-    for j in range(nj):
-        ok[j] = (m2[j] >= thr) & (top[j] < max_value)
-
-
-@nb.njit(inline="always", error_model="numpy")
-def _mask_next(m2, top, res_ok, thr, max_value, ok, nj):
-    for j in range(nj):
-        ok[j] = ok[j] & res_ok[j] & (m2[j] >= thr) & (top[j] < max_value)
-
-
-@nb.njit(inline="always", error_model="numpy")
-def _weigh_first(phi_abs, m2, wscale, xscale, num, den, nj):
-    for j in range(nj):
-        w = wscale * m2[j]
-        num[j] = w * (phi_abs[j] * xscale)
-        den[j] = w
-
-
-@nb.njit(inline="always", error_model="numpy")
-def _weigh_next(phi_abs, m2, wscale, xscale, num, den, nj):
-    for j in range(nj):
-        w = wscale * m2[j]
-        num[j] += w * (phi_abs[j] * xscale)
-        den[j] += w
-
-
-@nb.njit(parallel=True, cache=True, error_model="numpy")
-def fused_hierarchical(stacks, cw, sw, cw32, sw32, exact32, nsteps, periods, length, tables,
-                       has_table, max_value, min_mod2, max_res, block_rows, out_u, out_mask,
-                       out_mod):
-    """One pass over the images of a hierarchical ladder (coarse to fine, first group one
-    period): per pixel the N-step sums of every group, the phase (polynomial atan2),
-    optional nonlinearity correction (table), hierarchical unwrapping with the residual
-    check, inverse-variance combination (weights (p B)^2: equal sigma_I per pixel), the
-    modulation of the finest group, saturation and low-modulation masks.
-
-    Works on tiles of TILE columns of one row so the running sums stay in L1; the steps
-    are summed four at a time (cw/sw padded with zero weights to a multiple of 4).
-
-    stacks : tuple of (N_l, rows, cols) uint8/uint16 arrays, one per group.
-    cw, sw : (L, Nmax4) cos / sin weights (zero-padded).  nsteps, periods : (L,).
-    cw32, sw32 : the same in float32; exact32 : (L,) bool, the group's weights are all
-    0 or +-1 and its samples integers below 2^16, so float32 sums are exact.
-    tables : (L, M) correction tables (see telefringe.gamma), has_table : (L,) bool.
-    min_mod2 : (L,) thresholds on S^2 + C^2.  out_* : (rows, cols) outputs.
+    ``stacks`` may hold more arrays than ``lev_first[-1]`` (padding, so that one compiled
+    signature serves every ladder: see telefringe.decode._fused).
     """
-    tile = 256
     n_lev = nsteps.size
     rows = out_u.shape[0]
     cols = out_u.shape[1]
     m_tab = tables.shape[1]
-    tab_scale = m_tab / TWO_PI
-    cut = math.pi / length
+    tab_scale = _F32(m_tab / TWO_PI)
+    cut32 = _F32(math.pi / length)
+    inv2pi32 = _F32(INV_TWO_PI)
+    half32 = _F32(0.5)
+    max_res32 = _F32(max_res)
     n_blocks = (rows + block_rows - 1) // block_rows
+    dt = stacks[0].dtype
     for blk in nb.prange(n_blocks):
-        s_acc = np.empty(tile)
-        c_acc = np.empty(tile)
-        top = np.empty(tile)
-        phi_abs = np.empty(tile)
-        num = np.empty(tile)
-        den = np.empty(tile)
-        ok = np.empty(tile, dtype=np.bool_)
-        m2 = np.empty(tile)
-        ph = np.empty(tile)
-        res_ok = np.empty(tile, dtype=np.bool_)
+        # chosen (HDR) sums of the current level, and one member's sums
         s32 = np.empty(tile, dtype=np.float32)
         c32 = np.empty(tile, dtype=np.float32)
-        top32 = np.empty(tile, dtype=np.float32)
-        m232 = np.empty(tile, dtype=np.float32)
-        ph32 = np.empty(tile, dtype=np.float32)
+        top = np.empty(tile, dtype=dt)
+        ms32 = np.empty(tile, dtype=np.float32)
+        mc32 = np.empty(tile, dtype=np.float32)
+        mtop = np.empty(tile, dtype=dt)
+        s64 = np.empty(tile)
+        c64 = np.empty(tile)
+        found = np.empty(tile, dtype=np.bool_)
+        sel = np.empty(tile, dtype=np.bool_)
+        m2 = np.empty(tile, dtype=np.float32)
+        ph = np.empty(tile, dtype=np.float32)
+        phi_abs = np.empty(tile, dtype=np.float32)
+        kk = np.empty(tile, dtype=np.float32)
+        w32 = np.empty(tile, dtype=np.float32)
+        num = np.empty(tile, dtype=np.float32)
+        den = np.empty(tile, dtype=np.float32)
+        ok = np.empty(tile, dtype=np.bool_)
+        res_ok = np.empty(tile, dtype=np.bool_)
+        # full decode only
+        sa = np.empty(tile)
+        s2 = np.empty(tile)
+        c2 = np.empty(tile)
+        msa = np.empty(tile)
+        ms2 = np.empty(tile)
+        mc2 = np.empty(tile)
+        dvar = np.empty(tile)
+        expo = np.empty(tile)
+        sat = np.empty(tile, dtype=np.bool_)
+        low = np.empty(tile, dtype=np.bool_)
+        shadow = np.empty(tile, dtype=np.bool_)
+        rel = np.empty(tile, dtype=np.bool_)
         r0 = blk * block_rows
         r1 = min(rows, r0 + block_rows)
         for r in range(r0, r1):
             for j0 in range(0, cols, tile):
                 j1 = min(cols, j0 + tile)
                 nj = j1 - j0
+                o_u = out_u[r, j0:j1]
+                o_mask = out_mask[r, j0:j1]
+                o_mod = out_mod[r, j0:j1]
                 for lev in range(n_lev):
-                    st = stacks[lev]
                     n_k = nsteps[lev]
-                    if exact32[lev]:
-                        # integer sums: exact in float32 (weights 0/+-1, |S| < 2^24), so
-                        # the phase can use 8-lane float32 arithmetic
-                        for j in range(nj):
-                            s32[j] = 0.0
-                            c32[j] = 0.0
-                            top32[j] = 0.0
-                        for k in range(0, n_k, 4):
-                            k1 = min(k + 1, n_k - 1)
-                            k2 = min(k + 2, n_k - 1)
-                            k3 = min(k + 3, n_k - 1)
-                            _accumulate4_32(st[k, r], st[k1, r], st[k2, r], st[k3, r],
-                                            sw32[lev, k], sw32[lev, k + 1], sw32[lev, k + 2],
-                                            sw32[lev, k + 3], cw32[lev, k], cw32[lev, k + 1],
-                                            cw32[lev, k + 2], cw32[lev, k + 3], j0, j1, s32,
-                                            c32, top32)
-                        _phase32(s32, c32, m232, ph32, nj)
-                        _widen(ph32, ph, nj)
-                        _widen(m232, m2, nj)
-                        _widen(top32, top, nj)
-                    else:
-                        for j in range(nj):
-                            s_acc[j] = 0.0
-                            c_acc[j] = 0.0
-                            top[j] = 0.0
-                        for k in range(0, n_k, 4):
-                            k1 = min(k + 1, n_k - 1)
-                            k2 = min(k + 2, n_k - 1)
-                            k3 = min(k + 3, n_k - 1)
-                            _accumulate4(st[k, r], st[k1, r], st[k2, r], st[k3, r],
-                                         sw[lev, k], sw[lev, k + 1], sw[lev, k + 2],
-                                         sw[lev, k + 3], cw[lev, k], cw[lev, k + 1],
-                                         cw[lev, k + 2], cw[lev, k + 3], j0, j1, s_acc, c_acc,
-                                         top)
-                        for j in range(nj):  # phase and squared modulation (vectorised)
-                            s = s_acc[j]
-                            c = c_acc[j]
-                            m2[j] = s * s + c * c
-                            ph[j] = atan2_poly(-s, c)
-                    p = periods[lev]
-                    inv_n = 2.0 / n_k
-                    wscale = p * p * inv_n * inv_n
-                    xscale = length / (TWO_PI * p)
-                    ratio = p / periods[lev - 1] if lev > 0 else 1.0
-                    thr = min_mod2[lev]
-                    use_tab = has_table[lev]
                     last = lev == n_lev - 1
-                    if use_tab:  # nonlinearity correction: table look-up (gather)
+                    for mem in range(lev_first[lev], lev_first[lev + 1]):
+                        st = stacks[mem]
+                        first_mem = mem == lev_first[lev]
+                        # the first (longest) exposure goes straight into the chosen sums
+                        ts = s32 if first_mem else ms32
+                        tc = c32 if first_mem else mc32
+                        tt = top if first_mem else mtop
+                        for k in range(0, n_k, 4):
+                            k1 = min(k + 1, n_k - 1)
+                            k2 = min(k + 2, n_k - 1)
+                            k3 = min(k + 3, n_k - 1)
+                            if exact32[mem]:
+                                _acc4_32(st[k, r, j0:j1], st[k1, r, j0:j1], st[k2, r, j0:j1],
+                                         st[k3, r, j0:j1],
+                                         sw32[mem, k], sw32[mem, k + 1], sw32[mem, k + 2],
+                                         sw32[mem, k + 3], cw32[mem, k], cw32[mem, k + 1],
+                                         cw32[mem, k + 2], cw32[mem, k + 3], nj, ts, tc,
+                                         tt, k == 0)
+                            else:
+                                _acc4_64(st[k, r, j0:j1], st[k1, r, j0:j1], st[k2, r, j0:j1],
+                                         st[k3, r, j0:j1],
+                                         sw[mem, k], sw[mem, k + 1], sw[mem, k + 2],
+                                         sw[mem, k + 3], cw[mem, k], cw[mem, k + 1],
+                                         cw[mem, k + 2], cw[mem, k + 3], nj, s64, c64,
+                                         tt, k == 0)
+                        if not exact32[mem]:
+                            _to32(s64, c64, ts, tc, nj)
+                        if full:
+                            ta = sa if first_mem else msa
+                            t2s = s2 if first_mem else ms2
+                            t2c = c2 if first_mem else mc2
+                            for k in range(n_k):
+                                _acc_plain(st[k, r, j0:j1], s2w[mem, k], c2w[mem, k], nj, t2s,
+                                           t2c, ta, k == 0)
+                        e = exposure[mem]
+                        if first_mem:
+                            for j in range(nj):
+                                found[j] = top[j] < max_value
+                            if full:
+                                for j in range(nj):
+                                    expo[j] = e
+                        else:  # a shorter exposure where the longer ones saturate
+                            for j in range(nj):
+                                sel[j] = (not found[j]) & (mtop[j] < max_value)
+                            for j in range(nj):
+                                s32[j] = ms32[j] if sel[j] else s32[j]
+                            for j in range(nj):
+                                c32[j] = mc32[j] if sel[j] else c32[j]
+                            for j in range(nj):
+                                found[j] = found[j] | sel[j]
+                            if full:
+                                for j in range(nj):
+                                    sa[j] = msa[j] if sel[j] else sa[j]
+                                for j in range(nj):
+                                    s2[j] = ms2[j] if sel[j] else s2[j]
+                                for j in range(nj):
+                                    c2[j] = mc2[j] if sel[j] else c2[j]
+                                for j in range(nj):
+                                    expo[j] = e if sel[j] else expo[j]
+                    _phase32(s32, c32, ph, m2, nj)
+                    p = periods[lev]
+                    inv_n = 1.0 / n_k
+                    thr = min_mod2[lev]
+                    xscale = length / (TWO_PI * p)
+                    xscale32 = _F32(xscale)
+                    if full:
+                        # weight 1 / sigma_x^2 from the quadrature level (sigma_I of the
+                        # phase): cos 2phi = (C^2 - S^2) / R^2, sin 2phi = -2 S C / R^2
+                        wk = 2.0 * inv_n / (xscale * xscale)
                         for j in range(nj):
-                            t = (ph[j] + math.pi) * tab_scale
-                            i0 = int(t)
-                            f = t - i0
-                            i0 = min(max(i0, 0), m_tab - 1)
-                            i1 = i0 + 1 if i0 + 1 < m_tab else 0
-                            q = ph[j] - (tables[lev, i0] * (1.0 - f) + tables[lev, i1] * f)
-                            q = q - TWO_PI if q > math.pi else q
-                            ph[j] = q + TWO_PI if q <= -math.pi else q
-                    # (short loops over few arrays: each one vectorises)
-                    if lev == 0:
-                        _unit_phase(ph, phi_abs, cut, nj)
-                        _mask_first(m2, top, thr, max_value, ok, nj)
-                        _weigh_first(phi_abs, m2, wscale, xscale, num, den, nj)
+                            a = float(s32[j])
+                            b = float(c32[j])
+                            r2 = a * a + b * b
+                            pos = r2 > 0.0
+                            rr = r2 if pos else 1.0
+                            cos2 = (b * b - a * a) / rr if pos else 1.0
+                            sin2 = (-2.0 * a * b) / rr if pos else 0.0
+                            quad = (sa[j] - (cos2 * c2[j] - sin2 * s2[j])) * inv_n
+                            dvar[j] = noise_c + noise_gain * (quad if quad > 0.0 else 0.0)
+                        if has_table[lev]:  # noise factor at the measured phase
+                            nft = nf_tables[lev]
+                            for j in range(nj):
+                                i0, i1, f = _table_index(ph[j], tab_scale, m_tab)
+                                g0 = nft[i0]
+                                fac = g0 + float(f) * (nft[i1] - g0)
+                                dvar[j] = dvar[j] * fac * fac
+                        for j in range(nj):  # (0 where sigma would be 0)
+                            d = dvar[j]
+                            w = wk * float(m2[j]) / (d if d > 0.0 else 1.0)
+                            w32[j] = _F32(w if d > 0.0 else 0.0)
                     else:
-                        _unwrap_step(ph, phi_abs, ratio, max_res, res_ok, nj)
-                        _mask_next(m2, top, res_ok, thr, max_value, ok, nj)
-                        _weigh_next(phi_abs, m2, wscale, xscale, num, den, nj)
-                    if last:
+                        wscale = _F32((2.0 * p * inv_n) ** 2)
                         for j in range(nj):
-                            out_mod[r, j0 + j] = inv_n * math.sqrt(m2[j])
-                for j in range(nj):
-                    x = num[j] / den[j]
-                    valid = ok[j] & (x >= -0.5) & (x <= length - 0.5)
-                    out_u[r, j0 + j] = x if valid else np.nan
-                    out_mask[r, j0 + j] = valid
+                            w32[j] = wscale * m2[j]
+                    if has_table[lev]:
+                        _table_correct32(ph, tables[lev], tab_scale, nj)
+                    if lev == 0:
+                        for j in range(nj):
+                            q = ph[j] + cut32
+                            phi_abs[j] = q - _TWO_PI32 * np.floor(q * inv2pi32) - cut32
+                            kk[j] = _ZERO32
+                        for j in range(nj):
+                            ok[j] = found[j] & (m2[j] >= thr)
+                        if full:
+                            for j in range(nj):
+                                good = m2[j] >= thr
+                                sat[j] = not found[j]
+                                low[j] = not good
+                                shadow[j] = not good
+                                rel[j] = True
+                    else:
+                        ratio = _F32(p / periods[lev - 1])
+                        for j in range(nj):
+                            phv = ph[j]
+                            pred = phi_abs[j] * ratio
+                            kq = np.floor((pred - phv) * inv2pi32 + half32)
+                            fp = phv + _TWO_PI32 * kq
+                            kk[j] = kq
+                            phi_abs[j] = fp
+                            res_ok[j] = abs(pred - fp) <= max_res32
+                        for j in range(nj):
+                            ok[j] = ok[j] & res_ok[j] & found[j] & (m2[j] >= thr)
+                        if full:
+                            for j in range(nj):
+                                good = m2[j] >= thr
+                                sat[j] = sat[j] | (not found[j])
+                                low[j] = low[j] | (not good)
+                                shadow[j] = shadow[j] & (not good)
+                                rel[j] = rel[j] & res_ok[j]
+                    if not last:  # coarse levels: float32 sums (their weight is small)
+                        if lev == 0:
+                            for j in range(nj):
+                                w = w32[j]
+                                num[j] = w * (phi_abs[j] * xscale32)
+                                den[j] = w
+                        else:
+                            for j in range(nj):
+                                w = w32[j]
+                                num[j] += w * (phi_abs[j] * xscale32)
+                                den[j] += w
+                    else:
+                        # x = x_fine + sum_coarse w (x - x_fine) / sum w; x_fine in float64
+                        hi = length - 0.5
+                        for j in range(nj):
+                            xf = (float(ph[j]) + TWO_PI * float(kk[j])) * xscale
+                            xf32 = _F32(xf)
+                            w = w32[j]
+                            if lev == 0:
+                                dsum = w
+                                x = xf
+                            else:
+                                dsum = den[j] + w
+                                x = xf + float(num[j] - den[j] * xf32) / float(dsum)
+                            den[j] = dsum
+                            valid = ok[j] & (dsum > _ZERO32) & (x >= -0.5) & (x <= hi)
+                            o_u[j] = x if valid else np.nan
+                            o_mask[j] = valid
+                        bscale = 2.0 * inv_n
+                        for j in range(nj):
+                            o_mod[j] = bscale * math.sqrt(float(m2[j]))
+                        if full:
+                            o_bg = out_bg[r, j0:j1]
+                            o_exp = out_exp[r, j0:j1]
+                            for j in range(nj):
+                                o_bg[j] = sa[j] * inv_n
+                                o_exp[j] = expo[j]
+                if full:
+                    o_sigma = out_sigma[r, j0:j1]
+                    o_sat = out_sat[r, j0:j1]
+                    o_low = out_low[r, j0:j1]
+                    o_shadow = out_shadow[r, j0:j1]
+                    o_rel = out_rel[r, j0:j1]
+                    for j in range(nj):
+                        d = float(den[j])
+                        o_sigma[j] = 1.0 / math.sqrt(d) if o_mask[j] else np.nan
+                        o_sat[j] = sat[j]
+                        o_low[j] = low[j]
+                        o_shadow[j] = shadow[j]
+                        o_rel[j] = rel[j]
 
 
 @nb.njit(parallel=True, cache=True)

@@ -143,13 +143,12 @@ class _Level:
     exposure_index: np.ndarray
 
 
-def _levels(scan: Scan, axis: str) -> list[_Level]:
-    """Wrapped phase of every phase group on ``axis``, HDR sets fused (sorted by periods)."""
+def _phase_sets(scan: Scan, axis: str) -> dict[int, list[tuple[PhaseGroup, np.ndarray]]]:
+    """The phase groups of ``axis`` by periods (HDR sets: several exposures), checked."""
     sets: dict[int, list[tuple[PhaseGroup, np.ndarray]]] = {}
     for g, stack in zip(scan.manifest.groups, scan.stacks, strict=True):
         if isinstance(g, PhaseGroup) and g.axis == axis:
             sets.setdefault(int(g.periods), []).append((g, stack))
-    out = []
     for periods in sorted(sets):
         members = sets[periods]
         g0 = members[0][0]
@@ -163,9 +162,20 @@ def _levels(scan: Scan, axis: str) -> list[_Level]:
         if len(set(exps)) != len(exps):
             raise DecodeError(f"{scan.source}: two phase groups with {periods} periods on axis "
                               f"{axis} have the same exposure")
-        wps, sats = [], []
         for g, stack in members:
             _check_stack_values(scan, g, stack)
+    return {p: sets[p] for p in sorted(sets)}
+
+
+def _levels(scan: Scan, axis: str) -> list[_Level]:
+    """Wrapped phase of every phase group on ``axis``, HDR sets fused (sorted by periods)."""
+    sets = _phase_sets(scan, axis)
+    out = []
+    for periods, members in sets.items():
+        g0 = members[0][0]
+        exps = [float(g.exposure) for g, _ in members]
+        wps, sats = [], []
+        for g, stack in members:
             wps.append(wrapped_phase(stack, steps=int(g.steps), offset=float(g.offset)))
             sats.append(saturation_mask(stack, max_value=scan.max_value))
         if len(members) == 1:
@@ -273,10 +283,44 @@ def _unwrap(method: str, levels: list[_Level], phases: list[np.ndarray], *, leng
     return used, Unwrapped(tuple(absolute), reliable, worst)
 
 
+def _fusable(sets) -> bool:
+    """The fused kernel can decode these phase groups (one dtype, 3-D stacks)."""
+    stacks = [s for members in sets.values() for _, s in members]
+    dt = stacks[0].dtype
+    return (all(s.dtype == dt and s.ndim == 3 for s in stacks) and dt.kind in "uif"
+            and len(stacks) <= _MAX_MEMBERS)
+
+
+def _decode_axis_fused(scan: Scan, axis: str, sets, *, length: int, noise: NoiseModel,
+                       min_mod: float, max_residual: float, fit) -> AxisCoordinates:
+    """:func:`decode_axis` for a hierarchical ladder (HDR sets allowed) in one pass of the
+    fused kernel (see :func:`_fused`); ``fit`` is the nonlinearity correction (or None)."""
+    per = list(sets)
+    levels = [[(s, float(g.exposure)) for g, s in sets[p]] for p in per]
+    steps = [int(sets[p][0][0].steps) for p in per]
+    offsets = [float(sets[p][0][0].offset) for p in per]
+    models = None if fit is None else list(fit.models)
+    out = _fused(levels, per, steps, offsets, length=length, max_value=float(scan.max_value),
+                 min_mod=min_mod, max_residual=max_residual, models=models, full=True,
+                 noise=noise)
+    if out["saturated"].all():
+        raise DecodeError(f"{scan.source}: every pixel is saturated on axis {axis} (reduce "
+                          "the exposure or the projector brightness)")
+    shadow = out["shadow"]
+    if scan.white is not None and scan.black is not None:
+        shadow = (scan.white.astype(np.float64) - scan.black.astype(np.float64)) < 2 * min_mod
+    return AxisCoordinates(
+        axis=axis, method="hierarchical", coordinate=out["coordinate"], sigma=out["sigma"],
+        valid=out["valid"], modulation=out["modulation"], background=out["background"],
+        saturated=out["saturated"], low_modulation=out["low_modulation"], shadow=shadow,
+        order_reliable=out["order_reliable"], exposure=out["exposure"], periods=tuple(per),
+        phase_errors=fit)
+
+
 def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction: bool = True,
                 min_modulation: float | None = None, noise: NoiseModel | None = None,
                 max_residual: float = np.pi / 2, gray_min_contrast: float | None = None,
-                ) -> AxisCoordinates:
+                exact: bool = False) -> AxisCoordinates:
     """Decode one projector axis of a scan (see :func:`decode` for the parameters).
 
     Returns
@@ -285,8 +329,8 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
     """
     if axis not in ("u", "v"):
         raise DecodeError(f"axis must be 'u' or 'v', got {axis!r}")
-    levels = _levels(scan, axis)
-    if not levels:
+    sets = _phase_sets(scan, axis)
+    if not sets:
         raise DecodeError(f"{scan.source}: no phase group on axis {axis}")
     length = scan.manifest.axis_length(axis)
     scale = float(scan.max_value) / 255.0
@@ -294,12 +338,22 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
     min_mod = 0.02 * float(scan.max_value) if min_modulation is None else float(min_modulation)
     if not (np.isfinite(min_mod) and min_mod >= 0):
         raise DecodeError(f"min_modulation must be finite and >= 0, got {min_modulation!r}")
+    if not (np.isfinite(max_residual) and 0 < max_residual <= np.pi):
+        raise DecodeError(f"max_residual must be in (0, pi], got {max_residual!r}")
     grays = _gray_groups(scan, axis)
     gray = None
     if grays:
         gray = max(grays, key=lambda gs: (gs[0].complementary, gs[0].exposure))
-    method = choose_method([lv.periods for lv in levels], length=length,
+    method = choose_method(list(sets), length=length,
                            gray_bits=gray[0].bits if gray else None, method=method)
+    fusable = not exact and method == "hierarchical" and _fusable(sets)
+    if fusable and not (gamma_correction and len(sets) >= 2):
+        fit = None
+        if len(sets) >= 2 or gamma_correction:
+            fit = PhaseErrorFit(tuple(PhaseErrorModel.zero(p) for p in sets), 0.0, 0)
+        return _decode_axis_fused(scan, axis, sets, length=length, noise=noise,
+                                  min_mod=min_mod, max_residual=max_residual, fit=fit)
+    levels = _levels(scan, axis)
 
     shape = levels[0].wrapped.phase.shape
     saturated = np.zeros(shape, dtype=bool)
@@ -363,6 +417,9 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
         phases = [m.correct(p) for m, p in zip(fit.models, phases, strict=True)]
     elif len(levels) >= 2 or gamma_correction:
         fit = PhaseErrorFit(tuple(PhaseErrorModel.zero(lv.periods) for lv in levels), 0.0, 0)
+    if fusable:  # the correction is learned: the final pass in the fused kernel
+        return _decode_axis_fused(scan, axis, sets, length=length, noise=noise,
+                                  min_mod=min_mod, max_residual=max_residual, fit=fit)
     used, unw = run(phases)
 
     # inverse-variance combination of the unwrapped groups (projector pixels)
@@ -395,7 +452,7 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
 def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
            min_modulation: float | None = None, noise: NoiseModel | None = None,
            max_residual: float = np.pi / 2,
-           gray_min_contrast: float | None = None) -> ProjectorCoordinates:
+           gray_min_contrast: float | None = None, exact: bool = False) -> ProjectorCoordinates:
     """Projector coordinates of every camera pixel of a scan.
 
     Parameters
@@ -413,6 +470,11 @@ def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
     max_residual : float, rad, order-consistency tolerance of the unwrapping (pi/2).
     gray_min_contrast : float, DN, contrast below which a Gray bit counts as unread
         (default 3 sigma_I at the threshold level).
+    exact : bool. False (default): hierarchical ladders (with HDR sets, any step counts,
+        8/16-bit or float) go through one pass of the fused kernel (float32 polynomial
+        arctangent and unwrapping, the result assembled in float64; u_p within 1e-4 px of
+        the exact path, tested); the other methods always take the exact path. True:
+        float64 NumPy throughout (``numpy.arctan2``).
 
     Returns
     -------
@@ -433,7 +495,8 @@ def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
         raise DecodeError(f"{scan.source}: the scan has no phase group")
     res = {a: decode_axis(scan, a, method=method, gamma_correction=gamma_correction,
                           min_modulation=min_modulation, noise=noise,
-                          max_residual=max_residual, gray_min_contrast=gray_min_contrast)
+                          max_residual=max_residual, gray_min_contrast=gray_min_contrast,
+                          exact=exact)
            for a in axes_present}
     u = res.get("u")
     v = res.get("v")
@@ -466,7 +529,7 @@ class FastCoordinates:
     ----------
     coordinate : float64 (or float32), projector pixels, NaN where invalid.
     mask : bool.
-    modulation : float32, DN, of the finest group.
+    modulation : float64, DN, of the finest group.
     """
 
     coordinate: np.ndarray
@@ -474,17 +537,136 @@ class FastCoordinates:
     modulation: np.ndarray
 
 
+_TABLE_CACHE: dict = {}
+
+
+def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.ndarray]:
+    """Correction table g (float64, the measured phase minus the true one) and noise-factor
+    table ``1 / (1 + e')`` (float64) of ``model`` on the grid ``-pi + 2 pi j / n``, with n
+    (>= n_min, from 4096 by factors of 4) the first size whose linear interpolation error,
+    checked at every mid-point against the exact inverse, is <= 1e-8 rad. Cached."""
+    key = (model.periods, tuple(model.harmonics), np.asarray(model.cos_coef).tobytes(),
+           np.asarray(model.sin_coef).tobytes(), int(n_min))
+    hit = _TABLE_CACHE.get(key)
+    if hit is not None:
+        return hit
+    n = 4096
+    while True:
+        g, err = model.correction_table(n)
+        if n >= n_min and (err <= 1e-8 or n >= 2 ** 20):
+            break
+        n *= 4
+    grid = -np.pi + TWO_PI * np.arange(n) / n
+    nf = np.asarray(model.noise_factor(grid), dtype=np.float64)
+    if len(_TABLE_CACHE) > 64:
+        _TABLE_CACHE.clear()
+    _TABLE_CACHE[key] = (g, nf)
+    return g, nf
+
+
+_EXACT_WEIGHTS = (0.0, 0.5, -0.5, 1.0, -1.0)
+_MAX_MEMBERS = 16  # phase groups (exposures included) per axis in the fused kernel
+
+
+def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, min_mod: float,
+           max_residual: float, models=None, full: bool, noise: NoiseModel | None = None,
+           dtype=np.float64, block_rows: int = 4, tile: int = 512) -> dict:
+    """Run the fused kernel (telefringe._kernels.fused_ladder) over a hierarchical ladder.
+
+    levels : list (sorted by periods, first one period) of lists of (stack, exposure), the
+    group's exposures (any order). periods, steps, offsets : per level. models : per level
+    PhaseErrorModel or None. Returns the output arrays by name.
+    """
+    from . import _kernels as _k
+    from .phase import phase_shift_coefficients
+
+    n_lev = len(levels)
+    members = []
+    lev_first = [0]
+    for lv in levels:
+        members.extend(sorted(lv, key=lambda se: -se[1]))  # longest exposure first
+        lev_first.append(len(members))
+    n_mem = len(members)
+    mem_steps = [steps[i] for i in range(n_lev) for _ in levels[i]]
+    mem_off = [offsets[i] for i in range(n_lev) for _ in levels[i]]
+    k4 = 4 * ((max(steps) + 3) // 4)  # the kernel sums steps four at a time
+    sw, cw = np.zeros((n_mem, k4)), np.zeros((n_mem, k4))
+    s2w, c2w = np.zeros((n_mem, k4)), np.zeros((n_mem, k4))
+    stacks = []
+    dt = members[0][0].dtype
+    integer = dt.kind in "ui" and dt.itemsize <= 2
+    exact32 = np.zeros(n_mem, dtype=np.bool_)
+    for i, ((st, _), k, off) in enumerate(zip(members, mem_steps, mem_off, strict=True)):
+        c, s = phase_shift_coefficients(k, off)
+        cw[i, :k], sw[i, :k] = c, s
+        c2, s2 = phase_shift_coefficients(k, 2.0 * off, harmonic=2)
+        c2w[i, :k], s2w[i, :k] = c2, s2
+        # integer samples below 2^16, weights 0, +-1/2, +-1 and N <= 128: every partial
+        # sum is a multiple of 1/2 below 2^23, so the float32 sums are exact
+        exact32[i] = integer and k <= 128 and bool(np.all(np.isin(c, _EXACT_WEIGHTS))
+                                                     and np.all(np.isin(s, _EXACT_WEIGHTS)))
+        stacks.append(np.ascontiguousarray(st))
+    m_tab = 1
+    use = [m is not None and bool(m.harmonics) for m in (models or [None] * n_lev)]
+    if any(use):
+        m_tab = max(_model_tables(m, 1)[0].size for m, u in zip(models, use, strict=True)
+                    if u)
+    tables = np.zeros((n_lev, m_tab), dtype=np.float32)
+    nf_tables = np.ones((n_lev, m_tab))
+    for i, u in enumerate(use):
+        if u:
+            g, nf = _model_tables(models[i], m_tab)
+            tables[i], nf_tables[i] = g, nf
+    nst = np.asarray(steps, dtype=np.int64)
+    # thresholds on S^2 + C^2 (float32 in the kernel): the smallest float32 >= the exact
+    # value, so that m2 >= thr32 exactly when m2 >= thr
+    thr = (nst * float(min_mod) / 2.0) ** 2
+    min_mod2 = thr.astype(np.float32)
+    low = min_mod2.astype(np.float64) < thr
+    min_mod2[low] = np.nextafter(min_mod2[low], np.float32(np.inf))
+    shape = stacks[0].shape[1:]
+    one = (1, 1)
+    out = {"coordinate": np.empty(shape), "valid": np.empty(shape, dtype=bool),
+           "modulation": np.empty(shape)}
+    names = (("sigma", np.float64), ("background", np.float64), ("exposure", np.float64),
+             ("saturated", bool), ("low_modulation", bool), ("shadow", bool),
+             ("order_reliable", bool))
+    for name, t in names:
+        out[name] = np.empty(shape if full else one, dtype=t)
+    noise = noise if noise is not None else NoiseModel()
+    if n_mem > _MAX_MEMBERS:
+        raise DecodeError(f"the fused kernel takes at most {_MAX_MEMBERS} phase groups per "
+                          f"axis, got {n_mem}")
+    # pad the tuple to a fixed length: one compiled signature per dtype
+    pad = np.zeros((1, 1, 1), dtype=dt)
+    stacks += [pad] * (_MAX_MEMBERS - n_mem)
+    _k.fused_ladder(
+        tuple(stacks), np.asarray(lev_first, dtype=np.int64),
+        np.asarray([e for _, e in members], dtype=np.float64), exact32, nst,
+        sw.astype(np.float32), cw.astype(np.float32), sw, cw, s2w, c2w,
+        np.asarray(periods, dtype=np.float64), float(length), tables,
+        np.asarray(use, dtype=np.bool_), nf_tables, float(max_value), min_mod2,
+        float(max_residual), bool(full), float(noise.read_noise ** 2 + noise.quantization ** 2),
+        float(noise.gain), int(block_rows), int(min(tile, max(shape[1], 1))),
+        out["coordinate"], out["valid"], out["modulation"],
+        *(out[name] for name, _ in names))
+    if dtype != np.float64:
+        out["coordinate"] = out["coordinate"].astype(dtype)
+    return out
+
+
 def decode_axis_fast(stacks, periods, steps, *, length: int, offsets=0.0,
                      max_value: float = 255.0, min_modulation: float | None = None,
                      max_residual: float = np.pi / 2, phase_errors=None,
-                     dtype=np.float64, block_rows: int = 8) -> FastCoordinates:
-    """One fused pass (numba, parallel) from the images of a hierarchical ladder to the
-    projector coordinate, its mask and the modulation.
+                     dtype=np.float64, block_rows: int = 4) -> FastCoordinates:
+    """One fused pass (numba, parallel, vectorised) from the images of a hierarchical
+    ladder to the projector coordinate, its mask and the modulation.
 
     The same decoding as :func:`decode_axis` with the hierarchical method, single
-    exposure, except: the arctangent is a polynomial (error <= 1.3e-9 rad, tested), the
-    groups are combined with weights ``(p B)^2`` (the same sigma_I for all groups of a
-    pixel), and no uncertainty or diagnostics are returned. Memory: the outputs only.
+    exposure, except: the arctangent is a float32 polynomial (error <= 1e-6 rad, tested),
+    the groups are combined with weights ``(p B)^2`` (the same sigma_I for all groups of a
+    pixel), and no uncertainty or diagnostics are returned (``decode`` gives them, through
+    the same kernel). Memory: the outputs only.
 
     Parameters
     ----------
@@ -497,14 +679,12 @@ def decode_axis_fast(stacks, periods, steps, *, length: int, offsets=0.0,
         order) or None: the nonlinearity correction to apply (e.g. learned once with
         :func:`decode` or :func:`telefringe.gamma.fit_phase_errors` for a rig).
     dtype : float64 or float32, of ``coordinate``.
+    block_rows : int, image rows per parallel task.
 
     Returns
     -------
     FastCoordinates
     """
-    from . import _kernels as _k
-    from .phase import phase_shift_coefficients
-
     stacks = list(stacks)
     n = len(stacks)
     per = [int(p) for p in periods]
@@ -524,42 +704,19 @@ def decode_axis_fast(stacks, periods, steps, *, length: int, offsets=0.0,
                               f"shape {shape}")
         if s_.dtype != stacks[0].dtype:
             raise DecodeError("stacks differ in dtype")
+    if min(st) < 3:
+        raise DecodeError(f"steps must be >= 3, got {st}")
     models = None
     if phase_errors is not None:
         models = list(getattr(phase_errors, "models", phase_errors))
         if len(models) != n:
             raise DecodeError("phase_errors needs one model per stack")
     order = list(np.argsort(per))
-    n_max = 4 * ((max(st) + 3) // 4)  # the kernel sums steps four at a time
-    cw = np.zeros((n, n_max))
-    sw = np.zeros((n, n_max))
-    for i, g in enumerate(order):
-        c, s = phase_shift_coefficients(st[g], off[g])
-        cw[i, :st[g]] = c
-        sw[i, :st[g]] = s
-    m_tab = 1
-    if models is not None and any(m.harmonics for m in models):
-        m_tab = max(m._table[0].size for m in models if m.harmonics)
-    tables = np.zeros((n, m_tab))
-    has_table = np.zeros(n, dtype=np.bool_)
-    if m_tab > 1:
-        for i, g in enumerate(order):
-            if models[g].harmonics:
-                tables[i], _ = models[g].correction_table(m_tab)
-                has_table[i] = True
     min_mod = 0.02 * float(max_value) if min_modulation is None else float(min_modulation)
-    nst = np.asarray([st[g] for g in order], dtype=np.int64)
-    min_mod2 = (np.asarray(nst, float) * min_mod / 2.0) ** 2
-    out_u = np.empty(shape, dtype=dtype)
-    out_mask = np.empty(shape, dtype=np.bool_)
-    out_mod = np.empty(shape, dtype=np.float32)
-    integer = stacks[0].dtype in (np.uint8, np.uint16, np.int8, np.int16)
-    exact32 = np.array([integer and bool(np.all(np.isin(cw[i], (0.0, 1.0, -1.0)))
-                                         and np.all(np.isin(sw[i], (0.0, 1.0, -1.0))))
-                        for i in range(n)], dtype=np.bool_)
-    _k.fused_hierarchical(tuple(np.ascontiguousarray(stacks[g]) for g in order), cw, sw,
-                          cw.astype(np.float32), sw.astype(np.float32), exact32, nst,
-                          np.asarray([per[g] for g in order], dtype=np.float64),
-                          float(length), tables, has_table, float(max_value), min_mod2,
-                          float(max_residual), int(block_rows), out_u, out_mask, out_mod)
-    return FastCoordinates(coordinate=out_u, mask=out_mask, modulation=out_mod)
+    out = _fused([[(stacks[g], 1.0)] for g in order], [per[g] for g in order],
+                 [st[g] for g in order], [off[g] for g in order], length=length,
+                 max_value=max_value, min_mod=min_mod, max_residual=max_residual,
+                 models=None if models is None else [models[g] for g in order], full=False,
+                 dtype=dtype, block_rows=block_rows)
+    return FastCoordinates(coordinate=out["coordinate"], mask=out["valid"],
+                           modulation=out["modulation"])
