@@ -102,6 +102,29 @@ def _preview(hm):
     return hm.binned(factor)
 
 
+def _prefetch(*modules: str):
+    """Import ``modules`` in a background thread and return it.
+
+    The command spends its first second reading PNGs (decompression runs without the
+    GIL) and loading compiled kernels; importing the writers' libraries (matplotlib, the
+    better part of a second) meanwhile, on the other core, takes them off the critical
+    path. A failed import is left for the real one to report.
+    """
+    import importlib
+    import threading
+
+    def run():
+        for name in modules:
+            try:
+                importlib.import_module(name)
+            except Exception:  # noqa: BLE001 - reported by the import that needs it
+                pass
+
+    t = threading.Thread(target=run, name="telefringe-prefetch", daemon=True)
+    t.start()
+    return t
+
+
 def reconstruct_cmd(
     scan: Path = typer.Argument(..., help="Scan folder (with scan.json)."),
     rig: Path = typer.Option(..., "--rig", help="rig.json written by 'telefringe calibrate'."),
@@ -136,6 +159,9 @@ def reconstruct_cmd(
         raise InputError(f"--pixel-mm must be > 0, got {pixel_mm}")
     if not (max_residual > 0):
         raise InputError(f"--max-residual must be > 0, got {max_residual}")
+    # third-party leaves only, which nothing else imports meanwhile (two threads importing
+    # modules that import each other could see each other's half-initialised modules)
+    _prefetch("matplotlib.figure", "matplotlib.backends.backend_agg", "plyfile", "tifffile")
     from ..io.rig import load_rig
 
     rig_obj = load_rig(rig)
