@@ -1182,6 +1182,9 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
 
     ``radius`` (n,) are the fitted radii, ``sig_surface`` (n,) the standard uncertainty
     of the fitted surface along the viewing direction near the top (mm).
+
+    Returns (centre, sigma_centre, refined, lines (n, 3): a point of each highlight's
+    camera line or NaN, median offset (3,) of highlight from centre or None).
     """
     if image.shape != cloud.shape:
         raise MetrologyError(f"image has shape {image.shape}, the cloud {cloud.shape}")
@@ -1190,6 +1193,7 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
     h = 3
     hl = np.full(centre.shape, np.nan)
     hl_cov = np.full((centre.shape[0], 3, 3), np.nan)
+    lines = np.full(centre.shape, np.nan)  # a point of each highlight's camera line
     for k, (sl, reg) in enumerate(regions):
         sub = np.where(reg, image[sl], -np.inf)
         if not np.any(np.isfinite(sub)):
@@ -1227,11 +1231,12 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
         if not disc >= 0:
             continue
         t = -b - np.sqrt(disc)
+        lines[k] = q
         hl[k] = q + t * d
         hl_cov[k] = J @ cov_uv @ J.T + sig_surface[k] ** 2 * np.outer(d, d)
     good = np.all(np.isfinite(hl), axis=1)
     if np.count_nonzero(good) < 3:
-        return centre, sig_c, np.zeros(centre.shape[0], dtype=bool)
+        return centre, sig_c, np.zeros(centre.shape[0], dtype=bool), lines, None
     off = hl[good] - centre[good]
     med = np.median(off, axis=0)
     # the median's uncertainty (common to all balls): 1.25 std / sqrt(n)
@@ -1248,7 +1253,7 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
     var_t = var_t + (T**2) @ (s_med**2)
     var_n = (sig_c[good] ** 2) @ (nrm**2)  # (m,)
     new_s[good] = np.sqrt(var_t @ (T**2) + var_n[:, None] * nrm**2)
-    return new_c, new_s, good
+    return new_c, new_s, good, lines, med
 
 
 def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
@@ -1319,49 +1324,93 @@ def _smoothing_shape(pts: np.ndarray, centre: np.ndarray, r: float, view: np.nda
     return np.clip(nn @ view, 1e-3, 1.0), g
 
 
-def _brightness_gradient_term(cloud: PointCloud, image: np.ndarray, projector,
-                              px_mm: float) -> np.ndarray:
-    """(rows, cols) depth shift per unit point-spread variance from brightness gradients.
+def _brightness_gradient_terms(cloud: PointCloud, image: np.ndarray, projector,
+                               px_mm: float) -> tuple[np.ndarray, bool]:
+    """Per-pixel regressors of the depth shift that brightness gradients cause.
 
     A camera pixel averages the projector coordinate u_P over its point spread weighted
     by the brightness I, so where I varies the average is taken around a point moved by
-    s^2 grad(ln I) (s^2 the spread's variance, px^2): u_P is off by s^2 grad(ln I) .
-    grad(u_P), which moves the point along its camera line by that over du_P/dt. Returned
-    in mm of depth (along the viewing direction) per mm^2 of s^2 on the object (u fringes;
-    the v axis adds little depth information and is left out). NaN where unknown.
+    delta = s^2 grad(ln I) pixels (s^2 the spread's variance): u_P is off by delta .
+    grad(u_P), which moves the point along its camera line by that over du_P/dt, i.e. by
+    delta . (k + grad(t)), t the depth along the line and k (2,) the depth change per
+    pixel at constant u_P (one vector for a telecentric rig). Returns ``(B, known)``, B of
+    shape (rows, cols, 3): with the ``projector``, B[..., 0] is the whole shift per mm^2
+    of s^2 on the object and B[..., 1:] = 0 (``known`` True); without it, B[..., 0] is
+    the grad(t) part per mm^2 and B[..., 1:] = grad(ln I) (1 / px), whose coefficient
+    s^2 k is then estimated from the data (``known`` False). Only the u fringes are
+    modelled (the v axis adds little depth information). NaN where unknown.
     """
     d = np.asarray(cloud.direction, dtype=np.float64)
     xyz = np.where(cloud.mask[..., None], cloud.xyz, np.nan)
-    up, _ = projector.project(xyz)
-    up = np.asarray(up, dtype=np.float64)
-    x0 = np.nanmedian(xyz.reshape(-1, 3), axis=0)
-    du_dt = float((np.asarray(projector.project(x0 + 0.01 * d)[0])
-                   - np.asarray(projector.project(x0)[0])) / 0.01)  # px / mm
     with np.errstate(divide="ignore", invalid="ignore"):
         ln_i = np.log(np.where(image > 0, image, np.nan))
     gi_v, gi_u = np.gradient(ln_i)
-    gu_v, gu_u = np.gradient(up)
-    return (gi_u * gu_u + gi_v * gu_v) / du_dt / px_mm**2
+    B = np.zeros(cloud.shape + (3,))
+    if projector is not None:
+        up = np.asarray(projector.project(xyz)[0], dtype=np.float64)
+        x0 = np.nanmedian(xyz.reshape(-1, 3), axis=0)
+        du_dt = float((np.asarray(projector.project(x0 + 0.01 * d)[0])
+                       - np.asarray(projector.project(x0)[0])) / 0.01)  # px / mm
+        gu_v, gu_u = np.gradient(up)
+        B[..., 0] = (gi_u * gu_u + gi_v * gu_v) / du_dt / px_mm**2
+        return B, True
+    t = xyz @ d
+    gt_v, gt_u = np.gradient(t)
+    B[..., 0] = (gi_u * gt_u + gi_v * gt_v) / px_mm**2
+    B[..., 1] = gi_u
+    B[..., 2] = gi_v
+    return B, False
+
+
+def _fit_along_line(q: np.ndarray, w: np.ndarray, a: np.ndarray, d: np.ndarray, r: float,
+                    c0: np.ndarray):
+    """Sphere of radius r with its centre on the line a + t d, fitted to points q (m, 3)
+    with weights w: Gauss-Newton on t. Returns (centre (3,), sigma_t (mm)) or None."""
+    t = float((c0 - a) @ d)
+    for _ in range(20):
+        v = q - (a + t * d)
+        dist = np.linalg.norm(v, axis=1)
+        f = dist - r
+        j = -(v @ d) / dist  # d f / d t
+        den = float(j @ (w * j))
+        if not den > 0:
+            return None
+        step = -float(j @ (w * f)) / den
+        t += step
+        if abs(step) < 1e-9:
+            break
+    v = q - (a + t * d)
+    f = np.linalg.norm(v, axis=1) - r
+    dof = max(q.shape[0] - 1, 1)
+    s_t = float(np.sqrt(float(f @ (w * f)) / dof / den))
+    if not np.isfinite(t):
+        return None
+    return a + t * d, s_t
 
 
 def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: float,
-                       sub_every: int = 3, rounds: int = 6):
+                       free_gradient: bool, sub_every: int = 3, rounds: int = 6):
     """Fixed-radius cap fits that model the camera's point spread, and its variance.
 
-    ``caps``: list of (pts (m, 3), sig (m,), c (m,)) per ball. The points of each ball are
-    moved up the viewing direction by s^2 (g + c) (g: see :func:`_smoothing_shape`; c:
-    the per-pixel term of the brightness gradient, 1 / mm, 0 when unknown) and fitted with a
-    sphere of radius ``r`` weighted by 1 / (sigma_line cos(tilt))^2; s^2, common to every
-    ball (one camera), is estimated by Gauss-Newton on all balls' residuals at once
-    (Schur complement of the per-ball centres), on every ``sub_every``-th ball.
+    ``caps``: list of (pts (m, 3), sig (m,), B (m, 3)) per ball (B: see
+    :func:`_brightness_gradient_terms`, zeros when no image). The points of each ball are
+    moved up the viewing direction by s^2 (g + B0) + a . (B1, B2) (g: see
+    :func:`_smoothing_shape`; a = 0 unless ``free_gradient``) and fitted with a sphere of
+    radius ``r`` weighted by 1 / (sigma_line cos(tilt))^2. The global parameters
+    theta = (s^2[, a1, a2]), common to every ball (one camera, one rig), are estimated by
+    Gauss-Newton on all balls' residuals at once (Schur complement of the per-ball
+    centres), on every ``sub_every``-th ball.
 
-    Returns (fits (list of SphereFit or None), s2 (mm^2), sigma_s2 (mm^2)).
+    Returns (fits (list of SphereFit or None), data (per ball: corrected points of the
+    fit, their weights, and d(centre)/d(theta) (3, p)), theta (p,), cov_theta (p, p)).
     """
     cos_min = np.cos(np.radians(max_view_angle_deg))
+    npar = 3 if free_gradient else 1
     sel = []
-    for pts, sig, cg in caps:
-        ok = np.all(np.isfinite(pts), axis=1) & np.isfinite(sig) & (sig > 0) & np.isfinite(cg)
-        pts, sig, cg = pts[ok], sig[ok], cg[ok]
+    for pts, sig, bg in caps:
+        ok = (np.all(np.isfinite(pts), axis=1) & np.isfinite(sig) & (sig > 0)
+              & np.all(np.isfinite(bg), axis=1))
+        pts, sig, bg = pts[ok], sig[ok], bg[ok]
         if pts.shape[0] < 10:
             sel.append(None)
             continue
@@ -1375,63 +1424,70 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
         if np.count_nonzero(keep) < 10:
             sel.append(None)
             continue
-        sel.append((pts[keep], sig[keep], cg[keep], f0.centre))
+        sel.append((pts[keep], sig[keep], bg[keep], f0.centre))
 
-    def fit_one(item, s2):
-        pts, sig, cg, c = item
+    def fit_one(item, theta):
+        pts, sig, bg, c = item
         cos_t, g = _smoothing_shape(pts, c, r, view)
-        g = g + cg
-        q = pts + np.outer(s2 * g, view)  # moved up, toward the camera
+        R = np.column_stack([g + bg[:, 0], bg[:, 1], bg[:, 2]])[:, :npar]
+        q = pts + np.outer(R @ theta, view)  # moved up, toward the camera
         w = 1.0 / (sig * cos_t) ** 2
         f = fit_sphere(q, weights=w, robust=True, radius=r)
-        return f, q, w, g
+        m = f.inliers
+        v = q[m] - f.centre
+        dist = np.linalg.norm(v, axis=1)
+        nn = v / dist[:, None]
+        J = -nn  # d res / d centre
+        K = (nn @ view)[:, None] * R[m]  # d res / d theta
+        H = J.T @ (w[m][:, None] * J)
+        return f, q, w, J, K, dist - r, H
 
-    s2 = 0.0
-    var_s2 = np.inf
+    theta = np.zeros(npar)
+    cov = np.full((npar, npar), np.inf)
     sub = [k for k, it in enumerate(sel) if it is not None][::max(int(sub_every), 1)]
     for _ in range(rounds):
-        num = den = chi2 = 0.0
+        A = np.zeros((npar, npar))
+        bvec = np.zeros(npar)
+        chi2 = 0.0
         dof = 0
         for k in sub:
             try:
-                f, q, w, g = fit_one(sel[k], s2)
+                f, q, w, J, K, res, H = fit_one(sel[k], theta)
             except MetrologyError:
                 continue
-            m = f.inliers
-            v = q[m] - f.centre
-            dist = np.linalg.norm(v, axis=1)
-            nn = v / dist[:, None]
-            res = dist - r
-            wk = w[m]
-            J = -nn  # d res / d centre
-            kk = g[m] * (nn @ view)  # d res / d s2
-            H = J.T @ (wk[:, None] * J)
-            mv = J.T @ (wk * kk)
+            wk = w[f.inliers]
             try:
-                Hi_m = np.linalg.solve(H, mv)
+                HiJK = np.linalg.solve(H, J.T @ (wk[:, None] * K))
+                HiJf = np.linalg.solve(H, J.T @ (wk * res))
             except np.linalg.LinAlgError:
                 continue
-            num += float(kk @ (wk * res) - Hi_m @ (J.T @ (wk * res)))
-            den += float(kk @ (wk * kk) - mv @ Hi_m)
+            KW = K.T * wk
+            A += KW @ K - (KW @ J) @ HiJK
+            bvec += KW @ res - (KW @ J) @ HiJf
             chi2 += float(res @ (wk * res))
             dof += res.size - 3
-        if not den > 0:
+        try:
+            step = -np.linalg.solve(A, bvec)
+            cov = chi2 / max(dof - npar, 1) * np.linalg.inv(A)
+        except np.linalg.LinAlgError:
             break
-        step = -num / den
-        s2 += step
-        var_s2 = chi2 / max(dof - 1, 1) / den
-        if abs(step) < 1e-3 * max(abs(s2), 1e-9):
+        theta = theta + step
+        if abs(step[0]) < 1e-3 * max(abs(theta[0]), 1e-9):
             break
     fits = []
+    data = []
     for it in sel:
-        if it is None:
-            fits.append(None)
-            continue
-        try:
-            fits.append(fit_one(it, s2)[0])
-        except MetrologyError:
-            fits.append(None)
-    return fits, float(s2), float(np.sqrt(var_s2)) if np.isfinite(var_s2) else np.nan
+        f = None
+        if it is not None:
+            try:
+                f, q, w, J, K, _, H = fit_one(it, theta)
+                # the centre's sensitivity to theta (at its optimum: H dc = -J^T W K dth)
+                dc = -np.linalg.solve(H, J.T @ (w[f.inliers][:, None] * K))
+            except (MetrologyError, np.linalg.LinAlgError):
+                f = None
+        fits.append(f)
+        data.append(None if f is None else (q[f.inliers], w[f.inliers], dc))
+    return fits, data, theta, cov
 
 
 def _sigma_weights(cloud: PointCloud, sel: np.ndarray):
@@ -1444,20 +1500,25 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
                 min_height: float | None = None, min_fraction: float = 0.2,
                 edge_px: int | None = None, cap_min_height: float | None = None,
                 weighted: bool = False, max_view_angle_deg: float | None = None,
-                highlight_px: float = 0.0, fixed_radius: bool = False,
-                psf_model: bool = False, projector=None, substrate_margin: float | None = None,
+                highlight_px: float | None = None, fixed_radius: bool = False,
+                psf_model: bool = True, projector=None, substrate_margin: float | None = None,
                 seed: int = 0) -> BGAMeasurement:
     """Inspect a ball grid array from its point cloud.
 
     Steps: the substrate plane is fitted robustly (the balls are outliers); pixels more
     than ``min_height`` (default 0.2 ball diameters) above it form connected regions,
     one per ball (regions smaller than ``min_fraction`` of a ball's footprint are
-    ignored, and so are regions too large or too wide for one ball); each region, shrunk
+    ignored, and so are regions too large or too wide for one ball); the substrate is
+    refitted away from them (``substrate_margin``). Each region, shrunk
     by ``edge_px`` pixels (silhouette pixels mix ball and
     substrate; default 1 when a ball is at least 10 pixels wide, else 0: on small balls
     the points are too few to spare), keeping points higher than ``cap_min_height``
-    (default 0.3 ball diameters, above the shadowed flank), is fitted with a sphere
-    (robust; with the nominal radius when the cap does not determine it); the apex is
+    (default 0.3 ball diameters, above the shadowed flank) and away from the highlight
+    (``highlight_px``), is fitted with a sphere: by default (``psf_model``) of the
+    nominal radius, through a model of the camera's point spread, weighted by each
+    point's uncertainty (else robust, free radius when the cap determines it); with an
+    ``image``, the centre is then held on its highlight's camera line and only its depth
+    along it refitted. The apex is
     the sphere's point farthest from the substrate. Balls are then registered on the
     nominal grid (its rotation and offset found from the balls themselves), which gives
     the missing balls, the pitch between neighbours and the JEDEC seating-plane
@@ -1482,9 +1543,12 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
         sphere's radius).
     max_view_angle_deg : float, optional
         Drop cap points whose surface is tilted more than this from facing the camera.
-    highlight_px : float
+    highlight_px : float, optional
         Drop cap points within this many pixels of the brightest pixel of ``image`` (the
-        camera's point spread carries the highlight's phase into them); 0 keeps them.
+        camera's point spread carries the highlight's phase into them, beyond the first
+        order of ``psf_model``); 0 keeps them. Default 2.5 when a ball is at least 10
+        pixels wide (the highlight of the paper rig's balls, ~1 px sigma, has fallen to
+        the diffuse level there), else 0.
     fixed_radius : bool
         Fit every cap with the nominal radius (an assumption: the balls are spheres of
         the nominal diameter); the diameter is then not reported.
@@ -1492,14 +1556,18 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
         Fit the caps with the nominal radius and a model of the camera's point spread:
         a pixel measures the spread-averaged surface, which on a convex cap lies deeper
         than the surface (by s^2 lap(z) / 2, growing as the cap tilts away), and where
-        the brightness varies the average is taken off-centre (by s^2 grad(ln I), which
-        needs ``image`` and ``projector``). The spread's variance s^2 (one camera, so one
-        value for every ball) is estimated from the caps themselves (reported as
-        ``psf_variance``); points tilted more than ``max_view_angle_deg`` (default 60)
-        from facing the camera are dropped, every point is weighted by 1 / sigma_r^2.
+        the brightness varies the average is taken off-centre (by s^2 grad(ln I), with
+        ``image``). The spread's variance s^2 (one camera, so one value for every ball)
+        is estimated from the caps themselves (reported as ``psf_variance``), and so is
+        the depth change per pixel of that shift at constant projector coordinate unless
+        ``projector`` gives it; points tilted more than ``max_view_angle_deg`` (default
+        60) from facing the camera are dropped, every point is weighted by
+        1 / sigma_r^2. Needs the nominal diameter to hold (the radius is not fitted).
     projector : TelecentricDevice, optional
         The (calibrated) projector: gives the projector coordinate of each point and its
-        rate along the camera line, for the brightness-gradient term of ``psf_model``.
+        rate along the camera line, for the brightness-gradient term of ``psf_model``
+        (u fringes only; without it the term's geometric factor is estimated, which also
+        absorbs the v fringes' share).
     substrate_margin : float, optional
         The substrate plane is refitted on points farther than this (mm, default D / 2)
         from every ball region (next to a ball the substrate's points are biased by its
@@ -1515,6 +1583,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
 
     if cloud.count < 10:
         raise MetrologyError(f"the cloud has {cloud.count} valid points: no BGA")
+    if image is not None and np.shape(image) != cloud.shape:
+        raise MetrologyError(f"image has shape {np.shape(image)}, the cloud {cloud.shape}")
     D = float(nominal.ball_diameter_mm)
     pitch = float(nominal.pitch_mm)
     substrate = fit_plane(cloud, robust=True, seed=seed)
@@ -1533,6 +1603,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
     foot = np.pi * (D / 2) ** 2 / px_mm**2 if np.isfinite(px_mm) else 0.0
     if edge_px is None:
         edge_px = 1 if (np.isfinite(px_mm) and D / px_mm >= 10.0) else 0
+    if highlight_px is None:
+        highlight_px = 2.5 if (np.isfinite(px_mm) and D / px_mm >= 10.0) else 0.0
     margin = 0.5 * D if substrate_margin is None else float(substrate_margin)
     if margin > 0 and np.isfinite(px_mm):
         # refit the substrate away from the balls: next to a ball the substrate's points
@@ -1546,18 +1618,16 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
             h = np.where(cloud.mask, cloud.xyz @ nrm - substrate.offset, np.nan)
     sizes = np.bincount(labels.ravel(), minlength=n_lab + 1)
     slices = ndimage.find_objects(labels)
-    cgrad = None
-    if psf_model and projector is not None and image is not None and np.isfinite(px_mm):
-        cgrad = _brightness_gradient_term(cloud, np.asarray(image, np.float64), projector,
-                                          px_mm)
+    bgrad, grad_known = None, True
+    if psf_model and image is not None and np.isfinite(px_mm):
+        bgrad, grad_known = _brightness_gradient_terms(cloud, np.asarray(image, np.float64),
+                                                       projector, px_mm)
     fits = []
     regions = []
     free_r = []
     caps = []
     view = -np.asarray(cloud.direction, dtype=np.float64)
     image_arr = None if image is None else np.asarray(image, dtype=np.float64)
-    if image_arr is not None and image_arr.shape != cloud.shape:
-        raise MetrologyError(f"image has shape {image_arr.shape}, the cloud {cloud.shape}")
     for lab in range(1, n_lab + 1):
         if sizes[lab] < max(min_fraction * foot, 8):
             continue
@@ -1583,8 +1653,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
         if pts.shape[0] < 10:
             continue
         if psf_model:
-            caps.append((pts, sig, np.zeros(pts.shape[0]) if cgrad is None
-                         else cgrad[sl][sel]))
+            caps.append((pts, sig, np.zeros((pts.shape[0], 3)) if bgrad is None
+                         else bgrad[sl][sel]))
             regions.append((sl, labels[sl] == lab))
             continue
         try:
@@ -1600,12 +1670,14 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
         regions.append((sl, labels[sl] == lab))
     smoothing = (np.nan, np.nan)
     if psf_model:
-        all_fits, s2, s_s2 = _fit_caps_smoothed(
+        all_fits, all_data, theta, cov_theta = _fit_caps_smoothed(
             caps, view, D / 2, max_view_angle_deg=(60.0 if max_view_angle_deg is None
-                                                   else float(max_view_angle_deg)))
-        smoothing = (s2, s_s2)
+                                                   else float(max_view_angle_deg)),
+            free_gradient=not grad_known)
+        smoothing = (float(theta[0]), float(np.sqrt(cov_theta[0, 0])))
         keep = [k for k, f in enumerate(all_fits) if f is not None and f.rms < 0.1 * D]
         fits = [all_fits[k] for k in keep]
+        cap_data = [all_data[k] for k in keep]
         regions = [regions[k] for k in keep]
         free_r = [False] * len(fits)
     if not fits:
@@ -1614,15 +1686,33 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
     sig_c = np.array([f.sigma_centre for f in fits]).reshape(-1, 3)
     radius = np.array([f.radius for f in fits])
     refined = np.zeros(len(fits), dtype=bool)
+    med = None
     if image is not None:
         sig_top = np.array([_apex_sigma(f, nrm) for f in fits])
-        centre, sig_c, refined = _refine_by_highlights(cloud, np.asarray(image, np.float64),
-                                                       regions, centre, sig_c, nrm, radius,
-                                                       sig_top)
+        centre, sig_c, refined, lines, med = _refine_by_highlights(
+            cloud, np.asarray(image, np.float64), regions, centre, sig_c, nrm, radius,
+            sig_top)
+    sig_top = np.array([_apex_sigma(f, nrm) for f in fits])
+    if psf_model and image is not None and med is not None:
+        # every ball's centre lies on its highlight's camera line shifted by the common
+        # offset: fit the one remaining unknown, the depth along that line
+        d = np.asarray(cloud.direction, dtype=np.float64)
+        for k in np.flatnonzero(refined):
+            res = _fit_along_line(cap_data[k][0], cap_data[k][1], lines[k] - med, d,
+                                  radius[k], centre[k])
+            if res is not None:
+                centre[k], s_t = res
+                sig_top[k] = s_t * abs(float(d @ nrm))
+    if psf_model:
+        # the estimated spread parameters are common to every ball: their uncertainty
+        # moves every apex together
+        for k in range(len(fits)):
+            gk = nrm @ cap_data[k][2]  # d height / d theta
+            sig_top[k] = np.hypot(sig_top[k], np.sqrt(max(float(gk @ cov_theta @ gk), 0.0)))
     apex = centre + radius[:, None] * nrm
     height = apex @ nrm - substrate.offset
-    sig_h = np.array([np.hypot(_apex_sigma(f, nrm), substrate.sigma_at(a))
-                      for f, a in zip(fits, apex, strict=True)])
+    sig_h = np.array([np.hypot(st, substrate.sigma_at(a))
+                      for st, a in zip(sig_top, apex, strict=True)])
     T = _tangent_basis(nrm)
     pos = centre @ T.T
     if nominal.rows is None:

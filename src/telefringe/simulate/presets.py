@@ -31,8 +31,9 @@ __all__ = ["Photometry", "VirtualRig", "get_preset", "crop_camera", "PRESETS", "
 #: The calibration plate of the paper: 9 x 11 dark circles, pitch 3 mm, diameter 1.5 mm.
 PAPER_TARGET = CircleGridTarget(rows=9, cols=11, pitch_mm=3.0, diameter_mm=1.5)
 
-#: Relative exposure times of the default HDR set (BGA highlights unsaturated at the last).
-HDR_EXPOSURES = (1.0, 0.3, 0.1)
+#: Relative exposure times of the default HDR set: the dim flanks of the BGA balls valid at
+#: the first (>= 99.5 % of lit ball pixels), their highlights unsaturated at the last.
+HDR_EXPOSURES = (4.0, 0.6, 0.1)
 
 
 @dataclass(frozen=True)
