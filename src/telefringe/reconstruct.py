@@ -513,21 +513,32 @@ def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, co
     fd = 1.0 + k1 * (q + 2.0 * yu * yu) + 2.0 * kp[6] * yu
     converged = converged & (fa * fd - fb * fc > 0.0) & (fa + fd > 0.0)
     f = (FLAG_INCONSISTENT * (r > max_res) + FLAG_OUTSIDE * (1 - inside)
-         + FLAG_NOT_CONVERGED * (1 - converged) + FLAG_UNCERTAIN * (sg * abs(Rc[2, 2]) > max_sz))
+         + FLAG_NOT_CONVERGED * (1 - converged) + FLAG_UNCERTAIN * (sg * abs(Rc[8]) > max_sz))
     f = f if valid else FLAG_NO_PHASE
     flags[i] = f
     good = f == 0
     ok[i] = good
     sig[i] = sg if good else np.nan
-    x[i] = (ai * Rc[0, 0] + bi * Rc[1, 0] + s * Rc[2, 0]) if good else np.nan
-    y[i] = (ai * Rc[0, 1] + bi * Rc[1, 1] + s * Rc[2, 1]) if good else np.nan
-    z[i] = (ai * Rc[0, 2] + bi * Rc[1, 2] + s * Rc[2, 2]) if good else np.nan
+    x[i] = (ai * Rc[0] + bi * Rc[3] + s * Rc[6]) if good else np.nan
+    y[i] = (ai * Rc[1] + bi * Rc[4] + s * Rc[7]) if good else np.nan
+    z[i] = (ai * Rc[2] + bi * Rc[5] + s * Rc[8]) if good else np.nan
+
+
+@njit(cache=True, inline="always")
+def _invariants(kp, Rc):  # pragma: no cover - numba
+    # the rig's constants as tuples: loop invariants the compiler keeps in registers (read
+    # from arrays, they would be reloaded every pixel: the stores could alias them)
+    return ((kp[0], kp[1], kp[2], kp[3], kp[4], kp[5], kp[6], kp[7], kp[8], kp[9], kp[10],
+             kp[11], kp[12], kp[13], kp[14], kp[15], kp[16], kp[17], kp[18]),
+            (Rc[0, 0], Rc[0, 1], Rc[0, 2], Rc[1, 0], Rc[1, 1], Rc[1, 2], Rc[2, 0], Rc[2, 1],
+             Rc[2, 2]))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _solve_block(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max_sz,
                  x, y, z, sig, res, flags, ok):  # pragma: no cover - numba
     # fixed steps, no data-dependent branches: LLVM vectorises this loop
+    kp, Rc = _invariants(kp, Rc)
     for i in range(a.shape[0]):
         u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv = _observe(
             i, up, vp, su, sv, mask, combine, kp)
@@ -669,6 +680,7 @@ def _solve_u_fast(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
 def _solve_slow(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max_sz,
                 x, y, z, sig, res, flags, ok):  # pragma: no cover - numba
     # the pixels the fast pass left unconverged: iterate
+    kp, Rc = _invariants(kp, Rc)
     for i in range(a.shape[0]):
         if not (flags[i] & FLAG_NOT_CONVERGED):
             continue
