@@ -1,14 +1,21 @@
 """Decoding speed: 12 images of 1280 x 1024 uint8 (4 steps x 1/8/64 periods, one axis)
 -> projector coordinate u_p + mask + modulation, in megapixels (camera pixels) per second.
 
-Usage: python benchmarks/decode.py [--runs 7] [--threads N] [--peers /tmp/benchvenv]
+Usage: python benchmarks/decode.py [--runs 7] [--threads N] [--peers /tmp/benchvenv] [--asm]
 
-Prints, median (and best) of ``--runs`` runs after a warm-up call:
+Prints, median (and best) of ``--runs`` runs after a warm-up call, with the load average
+(the machine is shared: with a load above the core count every wall-clock figure here is
+a fraction of what an idle machine gives; the single-thread CPU-time line is the most
+load-independent one):
 
-- telefringe ``decode_axis_fast`` (fused numba kernel, parallel, exact-to-1.3e-9 rad
-  polynomial arctangent, no fastmath), without and with a nonlinearity correction table;
-- telefringe ``decode`` (the full-featured path: float64 NumPy, exact atan2, masks,
-  uncertainty, nonlinearity learned from the data);
+- telefringe ``decode_axis_fast``: the fused numba kernel (telefringe._kernels.fused_ladder,
+  parallel over rows, vectorised: float32 polynomial arctangent <= 1e-6 rad, float32
+  unwrapping, the result in float64; FMA contraction is the only fast-math flag), without
+  and with a nonlinearity correction table (float32 linear interpolation, <= 1e-6 rad);
+  and the same on one thread in CPU time (Mpx per CPU second);
+- telefringe ``decode``: the full result (sigma_u_p, diagnostics, HDR choice) from the same
+  fused kernel, with and without learning the nonlinearity from the data (the gamma fit,
+  telefringe.gamma, is most of that time); and ``decode(exact=True)`` (float64 NumPy);
 - a plain NumPy float32 reference (atan2, hierarchical unwrapping, mask);
 - the peers ``fringes`` (GPL-3.0: benchmarked in its own throwaway venv, never imported
   here) and OpenCV contrib's ``structured_light`` (3-step PSP only), when that venv
@@ -16,10 +23,14 @@ Prints, median (and best) of ``--runs`` runs after a warm-up call:
   ``python -m venv /tmp/benchvenv && /tmp/benchvenv/bin/pip install fringes
   opencv-contrib-python-headless``);
 - what bounds the speed: the rate of only reading the input once (12 bytes per pixel),
-  and of the fused kernel on a small image that stays in cache (arithmetic alone);
+  and of the fused kernel on a small image that stays in cache (arithmetic alone). The
+  kernel does about 3 x (8 weighted sums, an atan2 polynomial of degree 15 with one
+  division, an unwrapping step) per pixel in 8-lane float32 and the weights and the
+  result in 4-lane float64: it is arithmetic bound, well above the 15.7 MB read;
 - peak memory of a full-frame fast decode (tracemalloc in a fresh process, plus input).
 
-The machine is shared: the load average is printed with the figures.
+``--asm`` compiles the kernel afresh (in a scratch cache) and counts its packed (ymm/zmm)
+and scalar floating-point instructions: the check that the loops vectorise.
 """
 
 from __future__ import annotations
@@ -147,11 +158,32 @@ _MEMORY = textwrap.dedent(r'''
 ''')
 
 
+_ASM = textwrap.dedent(r'''
+    import re
+    import numpy as np
+    from telefringe import _kernels as _k
+    from telefringe.decode import decode_axis_fast
+    st = [np.zeros((4, 8, 8), np.uint8) for _ in range(3)]
+    decode_axis_fast(st, (1, 8, 64), 4, length=800)
+    asm = "\n".join(_k.fused_ladder.inspect_asm().values())
+    ops = re.findall(r"\b(v[a-z0-9]+?)(ps|pd|ss|sd)\s[^\n]*%([xyz])mm", asm)
+    arith = {"add", "sub", "mul", "div", "fmadd213", "fmadd231", "fmadd132", "fnmadd213",
+             "fnmadd231", "fnmadd132", "fmsub213", "fmsub231", "fmsub132", "sqrt", "max",
+             "min", "round", "cmp"}
+    packed = sum(1 for o, t, r in ops if t in ("ps", "pd") and r in "yz"
+                 and o[1:] in arith)
+    scalar = sum(1 for o, t, r in ops if t in ("ss", "sd") and o[1:] in arith)
+    print(f"asm of fused_ladder: {packed} packed (ymm/zmm) and {scalar} scalar float "
+          "arithmetic instructions (scalar: loop remainders, the table gather, HDR merges)")
+''')
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--threads", type=int, default=None, help="numba threads (default all)")
     ap.add_argument("--peers", default="/tmp/benchvenv", help="venv with fringes and OpenCV")
+    ap.add_argument("--asm", action="store_true", help="count packed vs scalar float ops")
     args = ap.parse_args()
 
     import numba
@@ -176,6 +208,8 @@ def main() -> None:
         print(f"  {name:<44s} {mpx / med:8.1f} Mpx/s (best {mpx / best:7.1f})  {note}",
               flush=True)
 
+    scan = Scan(ScanManifest(WIDTH, 600, tuple(PhaseGroup("u", p, STEPS) for p in PERIODS)),
+                tuple(stacks))
     t0 = time.perf_counter()
     decode_axis_fast([s[:, :8, :8].copy() for s in stacks], PERIODS, STEPS, length=WIDTH)
     print(f"cold start (load the cached kernel): {time.perf_counter() - t0:.2f} s")
@@ -191,12 +225,23 @@ def main() -> None:
                                                 phase_errors=models), args.runs)
     report("telefringe decode_axis_fast + gamma table", med, best,
            "(correction learned once per rig)")
-    scan = Scan(ScanManifest(WIDTH, 600, tuple(PhaseGroup("u", p, STEPS) for p in PERIODS)),
-                tuple(stacks))
+    numba.set_num_threads(1)
+    ts = []
+    for _ in range(args.runs):
+        t = time.process_time()
+        decode_axis_fast(stacks, PERIODS, STEPS, length=WIDTH)
+        ts.append(time.process_time() - t)
+    numba.set_num_threads(args.threads or numba.config.NUMBA_NUM_THREADS)
+    report("decode_axis_fast, 1 thread, per CPU second", statistics.median(ts), min(ts),
+           "(Mpx per CPU s: less sensitive to the load)")
+    med, best = timeit(lambda: decode(scan, gamma_correction=False), args.runs)
+    report("telefringe decode (full, no gamma fit)", med, best,
+           "sigma_u_p, diagnostics (fused kernel)")
     med, best = timeit(lambda: decode(scan), max(1, args.runs // 3))
-    report("telefringe decode (full: sigma, masks, gamma fit)", med, best)
-    med, best = timeit(lambda: decode(scan, gamma_correction=False), max(1, args.runs // 3))
-    report("telefringe decode (full, no gamma fit)", med, best)
+    report("telefringe decode (full, gamma fit)", med, best, "(the fit is most of it)")
+    med, best = timeit(lambda: decode(scan, gamma_correction=False, exact=True),
+                       max(1, args.runs // 3))
+    report("telefringe decode(exact=True), no gamma fit", med, best, "float64 NumPy")
     med, best = timeit(lambda: numpy_reference(stacks), args.runs)
     report("plain NumPy float32 reference", med, best)
 
@@ -248,18 +293,24 @@ def main() -> None:
     try:
         peak, inp = (float(x) for x in res.stdout.split())
         print(f"peak memory of a full-frame fast decode: {peak:.1f} MB allocated by the decode "
-              f"(outputs; numba scratch is 2 x 18 kB) + {inp:.1f} MB input = "
-              f"{peak + inp:.1f} MB")
+              f"(outputs; numba scratch: about 170 kB per parallel task) + {inp:.1f} MB "
+              f"input = {peak + inp:.1f} MB")
     except ValueError:
         print(f"memory measurement failed: {res.stderr.strip()[-300:]}")
     fast = rows[0][1]
     floor = [r for r in rows if r[0].startswith("floor")][0][1]
     arith = [r for r in rows if r[0].startswith("fused kernel on cache")][0][1]
     bound = "memory (reading the input)" if fast > 0.7 * floor else (
-        "arithmetic (the three polynomial arctangents and divisions per pixel)"
+        "arithmetic (per pixel 3 x: weighted sums, atan2 polynomial + division, "
+        "unwrapping; weights and result in float64)"
         if fast > 0.7 * arith else "neither alone (memory traffic + arithmetic)")
     print(f"bound: {bound}: fast {fast:.0f}, read floor {floor:.0f}, cache-resident "
-          f"{arith:.0f} Mpx/s")
+          f"{arith:.0f} Mpx/s (load average now {os.getloadavg()[0]:.2f})")
+    if args.asm:
+        res = subprocess.run([sys.executable, "-c", _ASM], capture_output=True, text=True,
+                             timeout=1200, env={**os.environ,
+                                                "NUMBA_CACHE_DIR": tempfile.mkdtemp()})
+        print(res.stdout.strip() or f"asm check failed: {res.stderr.strip()[-300:]}")
     del _k
 
 

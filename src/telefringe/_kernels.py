@@ -486,9 +486,9 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                             b = float(c32[j])
                             r2 = a * a + b * b
                             pos = r2 > 0.0
-                            rr = r2 if pos else 1.0
-                            cos2 = (b * b - a * a) / rr if pos else 1.0
-                            sin2 = (-2.0 * a * b) / rr if pos else 0.0
+                            inv = 1.0 / (r2 if pos else 1.0)
+                            cos2 = (b * b - a * a) * inv if pos else 1.0
+                            sin2 = (-2.0 * a * b) * inv if pos else 0.0
                             quad = (sa[j] - (cos2 * c2[j] - sin2 * s2[j])) * inv_n
                             dvar[j] = noise_c + noise_gain * (quad if quad > 0.0 else 0.0)
                         if has_table[lev]:  # noise factor at the measured phase
