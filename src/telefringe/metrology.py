@@ -1123,44 +1123,99 @@ def _register_grid(pos: np.ndarray, pitch: float, rows: int, cols: int,
     return idx, theta, origin_local, span
 
 
-def _gauss_spot(win: np.ndarray, u0: float, v0: float):
-    """Least-squares fit of a pixel-integrated 2D Gaussian + background to a window.
+def _gauss_spots(wins: np.ndarray, u0: float, v0: float, *, max_iter: int = 60):
+    """Least-squares fits of a pixel-integrated 2D Gaussian + background to many windows.
 
-    Returns (u, v, cov_uv (2, 2), sigma_px) in window pixel coordinates or None."""
-    from scipy.optimize import least_squares
+    ``wins`` (n, n0, n1): each is fitted with a * ex(u) * ey(v) + b, ex the integral over
+    the pixel of a unit Gaussian of centre x and sigma sg (error functions), by
+    Levenberg-Marquardt run on all windows at once (analytic Jacobian; bounds a >= 0,
+    -1 <= x <= n1, -1 <= y <= n0, 0.2 <= sg <= 0.4 min(n0, n1) by projection). Returns
+    a list of (x, y, cov_xy (2, 2), sg) in window pixel coordinates, or None where the
+    fit failed or the spot is not clear (peak below 10 residual sigma, or within a pixel
+    of the window's edge).
+    """
     from scipy.special import erf
 
-    n0, n1 = win.shape
-    vv, uu = np.mgrid[0:n0, 0:n1].astype(np.float64)
-    s2 = np.sqrt(2.0)
+    W = np.asarray(wins, dtype=np.float64)
+    n, n0, n1 = W.shape
+    uu = np.arange(n1, dtype=np.float64)
+    vv = np.arange(n0, dtype=np.float64)
+    r2 = np.sqrt(2.0)
+    c_pdf = 1.0 / np.sqrt(2.0 * np.pi)
+    lo = np.array([0.0, -1.0, -1.0, 0.2, -np.inf])
+    hi = np.array([np.inf, n1, n0, 0.4 * min(n0, n1), np.inf])
 
-    def model(p):
-        a, x, y, sg, b = p
-        ex = 0.5 * (erf((uu + 0.5 - x) / (s2 * sg)) - erf((uu - 0.5 - x) / (s2 * sg)))
-        ey = 0.5 * (erf((vv + 0.5 - y) / (s2 * sg)) - erf((vv - 0.5 - y) / (s2 * sg)))
-        return a * ex * ey + b
+    def axis_terms(c, sg, grid):
+        # (n, m): pixel integral of the unit Gaussian and its derivatives in c and sg
+        zp = (grid[None, :] + 0.5 - c[:, None]) / (r2 * sg[:, None])
+        zm = (grid[None, :] - 0.5 - c[:, None]) / (r2 * sg[:, None])
+        ep, em = np.exp(-zp * zp), np.exp(-zm * zm)
+        e = 0.5 * (erf(zp) - erf(zm))
+        de_dc = -c_pdf / sg[:, None] * (ep - em)
+        de_ds = -(r2 * c_pdf) / sg[:, None] * (zp * ep - zm * em)
+        return e, de_dc, de_ds
 
-    b0 = float(np.min(win))
-    p0 = np.array([(float(np.max(win)) - b0) * 2 * np.pi * 0.7**2, u0, v0, 0.7, b0])
-    try:
-        r = least_squares(lambda p: (model(p) - win).ravel(), p0,
-                          bounds=([0.0, -1.0, -1.0, 0.2, -np.inf],
-                                  [np.inf, n1, n0, 0.4 * min(n0, n1), np.inf]))
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    if not r.success:
-        return None
-    a, x, y, sg, b = r.x
-    dof = win.size - 5
-    s2r = float(np.sum(r.fun**2)) / max(dof, 1)
-    try:
-        cov = s2r * np.linalg.inv(r.jac.T @ r.jac)
-    except np.linalg.LinAlgError:
-        return None
-    peak = a / (2 * np.pi * sg * sg)
-    if not (peak > 10.0 * np.sqrt(s2r) and 1.0 <= x <= n1 - 2 and 1.0 <= y <= n0 - 2):
-        return None
-    return x, y, cov[1:3, 1:3], sg
+    def model_jac(P):
+        a, x, y, sg, b = P.T
+        ex, dex, dsx = axis_terms(x, sg, uu)
+        ey, dey, dsy = axis_terms(y, sg, vv)
+        g = ey[:, :, None] * ex[:, None, :]  # (n, n0, n1)
+        m = a[:, None, None] * g + b[:, None, None]
+        J = np.stack([g, a[:, None, None] * ey[:, :, None] * dex[:, None, :],
+                      a[:, None, None] * dey[:, :, None] * ex[:, None, :],
+                      a[:, None, None] * (ey[:, :, None] * dsx[:, None, :]
+                                          + dsy[:, :, None] * ex[:, None, :]),
+                      np.ones_like(g)], axis=-1)
+        return m.reshape(n, -1), J.reshape(n, -1, 5)
+
+    b0 = W.reshape(n, -1).min(axis=1)
+    P = np.column_stack([(W.reshape(n, -1).max(axis=1) - b0) * 2 * np.pi * 0.7**2,
+                         np.full(n, float(u0)), np.full(n, float(v0)), np.full(n, 0.7), b0])
+    Y = W.reshape(n, -1)
+    m, J = model_jac(P)
+    r = m - Y
+    cost = np.sum(r * r, axis=1)
+    lam = np.full(n, 1e-3)
+    done = np.zeros(n, dtype=bool)
+    eye = np.eye(5)
+    for _ in range(max_iter):
+        H = np.einsum("nki,nkj->nij", J, J)
+        g = np.einsum("nki,nk->ni", J, r)
+        A = H + lam[:, None, None] * (np.einsum("nii->ni", H)[:, :, None] * eye)
+        try:
+            step = -np.linalg.solve(A, g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            break
+        Pn = np.clip(P + step, lo, hi)
+        mn, Jn = model_jac(Pn)
+        rn = mn - Y
+        cn = np.sum(rn * rn, axis=1)
+        better = (cn < cost) & ~done
+        small = np.max(np.abs(Pn - P) / (np.abs(P) + 1e-3), axis=1) < 1e-10
+        P[better], r[better], J[better] = Pn[better], rn[better], Jn[better]
+        done |= better & ((cost - cn) <= 1e-12 * cost) | small
+        cost = np.where(better, cn, cost)
+        lam = np.where(better, np.maximum(lam / 10, 1e-12), np.minimum(lam * 10, 1e12))
+        done |= lam >= 1e12
+        if done.all():
+            break
+    out = []
+    dof = max(n0 * n1 - 5, 1)
+    for k in range(n):
+        a, x, y, sg, b = P[k]
+        s2r = float(cost[k]) / dof
+        try:
+            cov = s2r * np.linalg.inv(J[k].T @ J[k])
+        except np.linalg.LinAlgError:
+            out.append(None)
+            continue
+        peak = a / (2 * np.pi * sg * sg)
+        if not (np.all(np.isfinite(P[k])) and peak > 10.0 * np.sqrt(s2r)
+                and 1.0 <= x <= n1 - 2 and 1.0 <= y <= n0 - 2):
+            out.append(None)
+            continue
+        out.append((x, y, cov[1:3, 1:3], sg))
+    return out
 
 
 def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre, sig_c,
@@ -1194,6 +1249,7 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
     hl = np.full(centre.shape, np.nan)
     hl_cov = np.full((centre.shape[0], 3, 3), np.nan)
     lines = np.full(centre.shape, np.nan)  # a point of each highlight's camera line
+    found = []
     for k, (sl, reg) in enumerate(regions):
         sub = np.where(reg, image[sl], -np.inf)
         if not np.any(np.isfinite(sub)):
@@ -1206,7 +1262,10 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
         win = image[pv - h:pv + h + 1, pu - h:pu + h + 1]
         if not np.all(np.isfinite(win)):
             continue
-        g = _gauss_spot(win, float(h), float(h))
+        found.append((k, pv, pu, win))
+    spots = (_gauss_spots(np.stack([f[3] for f in found]), float(h), float(h))
+             if found else [])
+    for (k, pv, pu, _), g in zip(found, spots, strict=True):
         if g is None:
             continue
         x, y, cov_uv, _ = g
