@@ -151,7 +151,8 @@ def test_exact_recovery_strong_distortion():
     assert np.max(np.abs(cloud2.xyz - X)) < 1e-9
 
 
-@pytest.mark.parametrize("k_p", [(3e-4, 5e-5, -8e-5), (2e-2, 3e-3, -3e-3)])
+@pytest.mark.parametrize("k_p", [(3e-4, 5e-5, -8e-5), (2e-2, 3e-3, -3e-3),
+                                 (2e-1, 3e-2, -3e-2)])
 def test_u_only_kernel_matches_the_iterated_solution(k_p):
     """The lean u-only kernel (chord steps + one Newton step, reciprocal slope reused for
     sigma) against the general kernel, which iterates Newton on u_p and checks v_p (here
@@ -182,6 +183,35 @@ def test_u_only_kernel_matches_the_iterated_solution(k_p):
     # and the solution is the root: the model projects it back onto the observed u_p
     u_back, _ = rig.projector.project(fast.xyz[m])
     assert np.max(np.abs(u_back - up[m])) < 1e-8
+    # the strong distortion puts points beyond the radius where the kernel can skip the
+    # fold check (they are solved again with it)
+    from telefringe.reconstruct import _unfolded_radius2
+
+    xu, yu = rig.projector.world_to_sensor(fast.xyz[m])
+    assert np.any(xu**2 + yu**2 > _unfolded_radius2(*k_p)) == (k_p[0] > 0.1)
+
+
+@pytest.mark.parametrize("k", [(7e-5, 1e-5, -2e-5), (-2e-2, 3e-3, -3e-3), (0.0, 0.0, 1e-2),
+                               (-5e-1, 0.0, 0.0), (0.0, 0.0, 0.0)])
+def test_no_fold_within_the_unfolded_radius(k):
+    from telefringe.reconstruct import _unfolded_radius2
+
+    k1, s1, s2 = k
+    r2 = _unfolded_radius2(*k)
+    rng = np.random.default_rng(6)
+    r = np.sqrt(min(r2, 1e4)) * np.sqrt(rng.uniform(0, 1, 20000))
+    r[:100] = np.sqrt(min(r2, 1e4))  # the rim
+    t = rng.uniform(0, 2 * np.pi, r.size)
+    xu, yu = r * np.cos(t), r * np.sin(t)
+    q = xu**2 + yu**2
+    fa = 1 + k1 * (q + 2 * xu**2) + 2 * s1 * xu
+    fb = 2 * k1 * xu * yu + 2 * s1 * yu
+    fc = 2 * k1 * xu * yu + 2 * s2 * xu
+    fd = 1 + k1 * (q + 2 * yu**2) + 2 * s2 * yu
+    assert np.all(fa * fd - fb * fc > 0) and np.all(fa + fd > 0)
+    if k1 < 0 and s1 == s2 == 0:
+        # pure barrel distortion folds at r^2 = 1 / (3 |k1|): the bound is within 2x of it
+        assert 0.25 / (3 * abs(k1)) < r2 < 1 / (3 * abs(k1))
 
 
 def test_v_fringes_only():

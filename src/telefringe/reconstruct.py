@@ -363,8 +363,8 @@ class Triangulator:
         ok = np.empty(n, dtype=np.bool_)
         Rc = np.ascontiguousarray(self.rig.camera.R_dev_world)
         kp = np.array((u0, v0, du, dv, ki.k1, s1, s2, W, H, coef[0, 0], coef[0, 1], Bu,
-                       coef[1, 0], coef[1, 1], Bv, t_p[0], t_p[1], 1.0 / du, 1.0 / dv),
-                      dtype=np.float64)
+                       coef[1, 0], coef[1, 1], Bv, t_p[0], t_p[1], 1.0 / du, 1.0 / dv,
+                       _unfolded_radius2(ki.k1, s1, s2)), dtype=np.float64)
         max_res = np.inf if max_residual is None else float(max_residual)
         max_sz = np.inf if max_sigma_z is None else float(max_sigma_z)
         a_f, b_f = self.a.reshape(n), self.b.reshape(n)
@@ -592,6 +592,7 @@ def _solve_u_block(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
     Bv = kp[14]
     idu = kp[17]
     idv = kp[18]
+    r2_unfolded = kp[19]
     pu_a = kp[9]
     pu_b = kp[10]
     pv_a = kp[12]
@@ -643,11 +644,9 @@ def _solve_u_block(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
         vp_pred = v0 + (yu + (k1 * yu + s2) * q) * idv
         inside = ((up_pred >= -0.5) & (up_pred <= W - 0.5) & (vp_pred >= -0.5)
                   & (vp_pred <= H - 0.5))
-        fa = 1.0 + k1 * (q + 2.0 * xu * xu) + 2.0 * s1 * xu
-        fb = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
-        fc = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
-        fd = 1.0 + k1 * (q + 2.0 * yu * yu) + 2.0 * s2 * yu
-        converged = converged & (fa * fd - fb * fc > 0.0) & (fa + fd > 0.0)
+        # the fold check: true within the radius of _unfolded_radius2; beyond it (never,
+        # for a real projector) the slow pass solves the pixel again with the full check
+        converged = converged & (q <= r2_unfolded)
         fl = (FLAG_OUTSIDE * (1 - inside) + FLAG_NOT_CONVERGED * (1 - converged)
               + FLAG_UNCERTAIN * (sg * d22 > max_sz))
         fl = fl if valid else FLAG_NO_PHASE
@@ -736,6 +735,23 @@ def _undistort_kernel(xd, yd, k1, s1, s2, xu_out, yu_out,
         xu_out[i] = xu
         yu_out[i] = yu
     return n_bad
+
+
+def _unfolded_radius2(k1, s1, s2) -> float:
+    """Squared radius (undistorted sensor mm^2) within which the distortion cannot fold.
+
+    With r^2 = xu^2 + yu^2 and s = max(|s1|, |s2|), the Jacobian of the distortion has
+    diagonal terms >= 1 - 3|k1| r^2 - 2 s r and off-diagonal ones <= |k1| r^2 + 2 s r in
+    magnitude, so its determinant and trace are positive (the fold check of
+    :func:`telefringe.model.undistort_sensor` passes) while 4 |k1| r^2 + 4 s r < 1. The
+    radius returned is 0.99 of that bound's root (inf without distortion).
+    """
+    k = abs(float(k1))
+    s = max(abs(float(s1)), abs(float(s2)))
+    if k == 0.0 and s == 0.0:
+        return np.inf
+    r = 1.0 / (4.0 * s) if k == 0.0 else (np.sqrt(s * s + k) - s) / (2.0 * k)
+    return float((0.99 * r) ** 2)
 
 
 def _projector_coef(rig: Rig) -> np.ndarray:
