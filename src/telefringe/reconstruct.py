@@ -24,6 +24,17 @@ projector rows weighted by the decoder's uncertainties), and the distance betwee
 observed and predicted projector pixel is kept as a per-point consistency check
 (``residual``, projector px): a wrong fringe order or a bad calibration shows up there.
 
+Speed: everything that does not depend on the scan is computed once per rig and image
+shape (:class:`Triangulator`, cached by :func:`triangulate`): each pixel's undistorted line
+(``a``, ``b``) and the affine map to the projector's sensor. Per pixel, with u fringes
+only, the cubic's coefficients come from ``a``, ``b`` in a few multiplications, then the
+linear solution, two chord steps and one Newton step (two divisions), in a vectorised,
+parallel compiled loop; the rare pixels whose error estimate is above the 1e-12 mm
+tolerance, or which lie beyond the radius where the projector's distortion provably
+cannot fold, are solved again by plain Newton iteration with the full checks. Tests hold
+the fast path to the iterated solution within 1e-9 mm. The loop moves ~67 bytes per pixel
+and is bound by memory traffic and its arithmetic in about equal parts.
+
 Uncertainty: the only noisy input is the decoded projector coordinate. Its standard
 uncertainty moves the point along the camera line only, by ``sigma_s = sigma_u / |du_P/ds|``
 (or ``1 / sqrt((du_P/ds)^2 / sigma_u^2 + (dv_P/ds)^2 / sigma_v^2)`` with both axes), so
