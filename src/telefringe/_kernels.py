@@ -562,16 +562,16 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                             if lev == 0:
                                 dsum = w
                                 x = xf
-                            else:
+                            else:  # (the share of the coarse levels: small, float32)
                                 dsum = den[j] + w
-                                x = xf + float(num[j] - den[j] * xf32) / float(dsum)
+                                x = xf + float((num[j] - den[j] * xf32) / dsum)
                             den[j] = dsum
                             valid = ok[j] & (dsum > _ZERO32) & (x >= -0.5) & (x <= hi)
                             o_u[j] = x if valid else np.nan
                             o_mask[j] = valid
-                        bscale = 2.0 * inv_n
-                        for j in range(nj):
-                            o_mod[j] = bscale * math.sqrt(float(m2[j]))
+                        bscale = _F32(2.0 * inv_n)
+                        for j in range(nj):  # (float32 square root: 8 lanes)
+                            o_mod[j] = float(bscale * math.sqrt(m2[j]))
                         if full:
                             o_bg = out_bg[r, j0:j1]
                             o_exp = out_exp[r, j0:j1]
