@@ -1772,7 +1772,7 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
             if res is not None:
                 centre[k], s_t = res
                 sig_top[k] = s_t * abs(float(d @ nrm))
-    if psf_model:
+    if psf_model and np.all(np.isfinite(cov_theta)):
         # the estimated spread parameters are common to every ball: their uncertainty
         # moves every apex together
         for k in range(len(fits)):
