@@ -205,6 +205,60 @@ def table_correct32_array(phase, table, out):
     _table_correct32(out, table, _F32(table.size / TWO_PI), out.size)
 
 
+@nb.njit(inline="always", error_model="numpy")
+def _series_correct32(ph, s, c, m2, ca, cb, c0, d, n, zr, zi, dr, di, wr, wi, acc, nj):
+    """ph = wrap(ph - g(ph)) in place, g(phi) = c0 + sum_{t=1..n} ca[t-1] cos(t d phi) +
+    cb[t-1] sin(t d phi) (float32), the measured phase's cos and sin taken from the sums:
+    exp(i phi) = (C - i S) / R. No table look-up: the loops vectorise."""
+    for j in range(nj):
+        r2 = m2[j]
+        inv = _ONE32 / math.sqrt(r2 if r2 > _ZERO32 else _ONE32)
+        inv = inv if r2 > _ZERO32 else _ZERO32
+        zr[j] = c[j] * inv
+        zi[j] = -s[j] * inv
+        dr[j] = zr[j]
+        di[j] = zi[j]
+    for _ in range(d - 1):  # z^d
+        for j in range(nj):
+            a = dr[j]
+            b = di[j]
+            dr[j] = a * zr[j] - b * zi[j]
+            di[j] = a * zi[j] + b * zr[j]
+    a1 = ca[0]
+    b1 = cb[0]
+    for j in range(nj):
+        wr[j] = dr[j]
+        wi[j] = di[j]
+        acc[j] = c0 + (a1 * dr[j] + b1 * di[j])
+    for t in range(1, n):
+        at = ca[t]
+        bt = cb[t]
+        for j in range(nj):
+            a = wr[j]
+            b = wi[j]
+            na = a * dr[j] - b * di[j]
+            nb_ = a * di[j] + b * dr[j]
+            wr[j] = na
+            wi[j] = nb_
+            acc[j] += at * na + bt * nb_
+    for j in range(nj):
+        q = ph[j] - acc[j]
+        q = q - _TWO_PI32 if q > _PI32 else q
+        ph[j] = q + _TWO_PI32 if q <= -_PI32 else q
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
+def series_correct32_array(s, c, ca, cb, c0, d, n, out):
+    """The fused kernel's phase and series correction over 1-D float32 sums S, C (for
+    tests): out = wrap(atan2(-S, C) - g), g as in :func:`_series_correct32`."""
+    nj = s.size
+    m2 = np.empty(nj, dtype=np.float32)
+    _phase32(s, c, out, m2, nj)
+    sc = np.empty((7, nj), dtype=np.float32)
+    _series_correct32(out, s, c, m2, ca, cb, c0, d, n, sc[0], sc[1], sc[2], sc[3], sc[4],
+                      sc[5], sc[6], nj)
+
+
 @nb.njit(inline="always")
 def _acc4_32(r0, r1, r2, r3, a0, a1, a2, a3, b0, b1, b2, b3, nj, s, c, top, first):
     """Add 4 steps' weighted samples of columns j0..j0+nj to float32 sums s, c and the
@@ -317,7 +371,8 @@ def _phase32(s, c, ph, m2, nj):
 
 @nb.njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract"})
 def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, cw, s2w, c2w,
-                 periods, length, tables, has_table, nf_tables, max_value, min_mod2,
+                 periods, length, tables, has_table, nf_tables, has_nf, ser_a, ser_b,
+                 ser_c0, ser_d, ser_n, has_series, max_value, min_mod2,
                  max_res, full, noise_c, noise_gain, block_rows, tile,
                  out_u, out_mask, out_mod,
                  out_sigma, out_bg, out_exp, out_sat, out_low, out_shadow, out_rel):
@@ -342,8 +397,11 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
     sw32, cw32, sw, cw : (members, K) sin / cos weights (float32, float64), K a multiple
         of 4, zero-padded.  s2w, c2w : (members, K) float64, second-harmonic weights.
     periods : (L,) float64.  length : float, projector pixels.
-    tables : (L, M) float32 corrections g(measured phase); has_table : (L,) bool.
-    nf_tables : (L, M) float64 noise factors d(true)/d(measured) (full only).
+    tables : (L, M) float32 corrections g(measured phase) applied by linear interpolation
+        where has_table (L,) bool.
+    nf_tables : (L, M) float64 noise factors d(true)/d(measured) (full only; where has_nf).
+    ser_a, ser_b : (L, T) float32, ser_c0 : (L,) float32, ser_d, ser_n : (L,) int64: the
+        correction as a Fourier series (see :func:`_series_correct32`), where has_series.
     min_mod2 : (L,) float32, thresholds on S^2 + C^2 (rounded up to float32).
     max_res : float, rad.
     full : bool. False: weights (p B)^2 and only out_u, out_mask, out_mod (B of the
@@ -400,6 +458,14 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
         low = np.empty(tile, dtype=np.bool_)
         shadow = np.empty(tile, dtype=np.bool_)
         rel = np.empty(tile, dtype=np.bool_)
+        # nonlinearity correction by series
+        zr = np.empty(tile, dtype=np.float32)
+        zi = np.empty(tile, dtype=np.float32)
+        dr = np.empty(tile, dtype=np.float32)
+        di = np.empty(tile, dtype=np.float32)
+        wr = np.empty(tile, dtype=np.float32)
+        wi = np.empty(tile, dtype=np.float32)
+        gacc = np.empty(tile, dtype=np.float32)
         r0 = blk * block_rows
         r1 = min(rows, r0 + block_rows)
         for r in range(r0, r1):
@@ -491,7 +557,7 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                             sin2 = (-2.0 * a * b) * inv if pos else 0.0
                             quad = (sa[j] - (cos2 * c2[j] - sin2 * s2[j])) * inv_n
                             dvar[j] = noise_c + noise_gain * (quad if quad > 0.0 else 0.0)
-                        if has_table[lev]:  # noise factor at the measured phase
+                        if has_nf[lev]:  # noise factor at the measured phase
                             nft = nf_tables[lev]
                             for j in range(nj):
                                 i0, i1, f = _table_index(ph[j], tab_scale, m_tab)
@@ -506,7 +572,11 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                         wscale = _F32((2.0 * p * inv_n) ** 2)
                         for j in range(nj):
                             w32[j] = wscale * m2[j]
-                    if has_table[lev]:
+                    if has_series[lev]:
+                        _series_correct32(ph, s32, c32, m2, ser_a[lev], ser_b[lev],
+                                          ser_c0[lev], ser_d[lev], ser_n[lev], zr, zi, dr, di,
+                                          wr, wi, gacc, nj)
+                    elif has_table[lev]:  # (the look-up does not vectorise)
                         _table_correct32(ph, tables[lev], tab_scale, nj)
                     if lev == 0:
                         for j in range(nj):

@@ -25,6 +25,7 @@ fused kernel applies the correction through its tables.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -550,11 +551,12 @@ class FastCoordinates:
 _TABLE_CACHE: dict = {}
 
 
-def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.ndarray]:
-    """Correction table g (float64, the measured phase minus the true one) and noise-factor
+def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Correction table g (float64, the measured phase minus the true one), noise-factor
     table ``1 / (1 + e')`` (float64) of ``model`` on the grid ``-pi + 2 pi j / n``, with n
     (>= n_min, from 4096 by factors of 4) the first size whose linear interpolation error,
-    checked at every mid-point against the exact inverse, is <= 1e-8 rad. Cached."""
+    checked at every mid-point against the exact inverse, is <= 1e-8 rad, and g as a
+    Fourier series (:func:`_series`). Cached."""
     key = (model.periods, tuple(model.harmonics), np.asarray(model.cos_coef).tobytes(),
            np.asarray(model.sin_coef).tobytes(), int(n_min))
     hit = _TABLE_CACHE.get(key)
@@ -570,12 +572,61 @@ def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.nd
     nf = np.asarray(model.noise_factor(grid), dtype=np.float64)
     if len(_TABLE_CACHE) > 64:
         _TABLE_CACHE.clear()
-    _TABLE_CACHE[key] = (g, nf)
-    return g, nf
+    _TABLE_CACHE[key] = (g, nf, _series(g))
+    return _TABLE_CACHE[key]
+
+
+#: the Fourier series of a correction may drop terms summing to at most this (rad)
+SERIES_TAIL = 1e-7
+SERIES_MAX_TERMS = 48
+
+
+def _series(g: np.ndarray):
+    """The correction table ``g`` (samples at ``-pi + 2 pi j / M``) as a Fourier series in
+    harmonics of one order step d: ``g(phi) = c0 + sum_t a[t-1] cos(t d phi) + b[t-1]
+    sin(t d phi)``, its dropped terms summing to <= SERIES_TAIL rad; None when that needs
+    more than SERIES_MAX_TERMS terms (the kernel then interpolates the table).
+
+    Returns (a, b, c0, d) or None.
+    """
+    m = g.size
+    k = np.arange(m // 2 + 1)
+    coef = np.fft.rfft(g) / m * np.where(k % 2 == 0, 1.0, -1.0)  # grid starts at -pi
+    a, b = 2.0 * coef.real, -2.0 * coef.imag
+    c0 = coef[0].real
+    mag = np.abs(a) + np.abs(b)
+    mag[0] = 0.0
+    order = np.argsort(mag)
+    tail = np.cumsum(mag[order])
+    kept = mag > 0
+    kept[order[tail <= SERIES_TAIL]] = False  # the smallest terms, their sum within the bound
+    keep = np.nonzero(kept)[0]
+    if keep.size == 0:
+        return np.zeros(1), np.zeros(1), c0, 1
+    d = int(np.gcd.reduce(keep))
+    n = int(keep.max()) // d
+    if n > SERIES_MAX_TERMS or keep.max() >= m // 4:
+        return None
+    idx = d * np.arange(1, n + 1)
+    return a[idx], b[idx], c0, d
 
 
 _EXACT_WEIGHTS = (0.0, 0.5, -0.5, 1.0, -1.0)
 _MAX_MEMBERS = 16  # phase groups (exposures included) per axis in the fused kernel
+
+
+@functools.lru_cache(maxsize=64)
+def _weights(steps: int, offset: float):
+    """N-step weights (cos, sin, second-harmonic cos, sin; read-only) and whether they are
+    all 0, +-1/2 or +-1."""
+    from .phase import phase_shift_coefficients
+
+    c, s = phase_shift_coefficients(steps, offset)
+    c2, s2 = phase_shift_coefficients(steps, 2.0 * offset, harmonic=2)
+    for arr in (c, s, c2, s2):
+        arr.flags.writeable = False
+    exact = bool(np.all(np.isin(c, _EXACT_WEIGHTS)) and np.all(np.isin(s, _EXACT_WEIGHTS)))
+    return c, s, c2, s2, exact
 
 
 def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, min_mod: float,
@@ -588,7 +639,6 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     PhaseErrorModel or None. Returns the output arrays by name.
     """
     from . import _kernels as _k
-    from .phase import phase_shift_coefficients
 
     n_lev = len(levels)
     members = []
@@ -607,14 +657,12 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     integer = dt.kind in "ui" and dt.itemsize <= 2
     exact32 = np.zeros(n_mem, dtype=np.bool_)
     for i, ((st, _), k, off) in enumerate(zip(members, mem_steps, mem_off, strict=True)):
-        c, s = phase_shift_coefficients(k, off)
+        c, s, c2, s2, exact = _weights(k, off)
         cw[i, :k], sw[i, :k] = c, s
-        c2, s2 = phase_shift_coefficients(k, 2.0 * off, harmonic=2)
         c2w[i, :k], s2w[i, :k] = c2, s2
         # integer samples below 2^16, weights 0, +-1/2, +-1 and N <= 128: every partial
         # sum is a multiple of 1/2 below 2^23, so the float32 sums are exact
-        exact32[i] = integer and k <= 128 and bool(np.all(np.isin(c, _EXACT_WEIGHTS))
-                                                     and np.all(np.isin(s, _EXACT_WEIGHTS)))
+        exact32[i] = integer and k <= 128 and exact
         stacks.append(np.ascontiguousarray(st))
     m_tab = 1
     use = [m is not None and bool(m.harmonics) for m in (models or [None] * n_lev)]
@@ -623,10 +671,23 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
                     if u)
     tables = np.zeros((n_lev, m_tab), dtype=np.float32)
     nf_tables = np.ones((n_lev, m_tab))
+    series = [None] * n_lev
     for i, u in enumerate(use):
         if u:
-            g, nf = _model_tables(models[i], m_tab)
+            g, nf, series[i] = _model_tables(models[i], m_tab)
             tables[i], nf_tables[i] = g, nf
+    n_ser = max([len(s[0]) for s in series if s is not None] + [1])
+    ser_a = np.zeros((n_lev, n_ser), dtype=np.float32)
+    ser_b = np.zeros((n_lev, n_ser), dtype=np.float32)
+    ser_c0 = np.zeros(n_lev, dtype=np.float32)
+    ser_d = np.ones(n_lev, dtype=np.int64)
+    ser_n = np.ones(n_lev, dtype=np.int64)
+    has_series = np.zeros(n_lev, dtype=np.bool_)
+    for i, s in enumerate(series):
+        if s is not None:
+            a, b, c0, d = s
+            ser_a[i, :a.size], ser_b[i, :b.size] = a, b
+            ser_c0[i], ser_d[i], ser_n[i], has_series[i] = c0, d, a.size, True
     nst = np.asarray(steps, dtype=np.int64)
     # thresholds on S^2 + C^2 (float32 in the kernel): the smallest float32 >= the exact
     # value, so that m2 >= thr32 exactly when m2 >= thr
@@ -655,7 +716,9 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
         np.asarray([e for _, e in members], dtype=np.float64), exact32, nst,
         sw.astype(np.float32), cw.astype(np.float32), sw, cw, s2w, c2w,
         np.asarray(periods, dtype=np.float64), float(length), tables,
-        np.asarray(use, dtype=np.bool_), nf_tables, float(max_value), min_mod2,
+        np.asarray(use, dtype=np.bool_) & ~has_series, nf_tables,
+        np.asarray(use, dtype=np.bool_), ser_a, ser_b, ser_c0, ser_d, ser_n, has_series,
+        float(max_value), min_mod2,
         float(max_residual), bool(full), float(noise.read_noise ** 2 + noise.quantization ** 2),
         float(noise.gain), int(block_rows), int(min(tile, max(shape[1], 1))),
         out["coordinate"], out["valid"], out["modulation"],
