@@ -725,7 +725,8 @@ def _sphere_geometric(p: np.ndarray, w: np.ndarray, c: np.ndarray, r: float,
 
 
 def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 4.0,
-               max_rounds: int = 5, radius: float | None = None) -> SphereFit:
+               max_rounds: int = 5, radius: float | None = None,
+               start=None) -> SphereFit:
     """Fit a sphere: algebraic (Kasa) start, then geometric least squares.
 
     Parameters
@@ -740,6 +741,9 @@ def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 
     radius : float, optional
         Fit the centre only, with this radius (mm): for small caps whose curvature the
         points do not determine (then ``covariance``'s radius row and column are 0).
+    start : (3,) array_like, optional
+        With ``radius``: the centre to start from (e.g. a previous fit of the same cap)
+        instead of the start estimated from the points.
 
     Returns
     -------
@@ -776,7 +780,8 @@ def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 
         if np.count_nonzero(keep) < 5:
             raise MetrologyError("robust sphere fit: fewer than 5 inliers")
         if fixed:
-            c0 = _sphere_start_fixed(pf[keep], wf[keep], float(radius))
+            c0 = (np.asarray(start, dtype=np.float64) if start is not None
+                  else _sphere_start_fixed(pf[keep], wf[keep], float(radius)))
             c, r, f, J = _sphere_geometric(pf[keep], wf[keep], c0, float(radius),
                                            fixed_radius=True)
         else:
@@ -1448,7 +1453,7 @@ def _fit_along_line(q: np.ndarray, w: np.ndarray, a: np.ndarray, d: np.ndarray, 
 
 
 def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: float,
-                       free_gradient: bool, sub_every: int = 3, rounds: int = 6):
+                       free_gradient: bool, sub_every: int = 4, rounds: int = 6):
     """Fixed-radius cap fits that model the camera's point spread, and its variance.
 
     ``caps``: list of (pts (m, 3), sig (m,), B (m, 3)) per ball (B: see
@@ -1491,7 +1496,7 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
         R = np.column_stack([g + bg[:, 0], bg[:, 1], bg[:, 2]])[:, :npar]
         q = pts + np.outer(R @ theta, view)  # moved up, toward the camera
         w = 1.0 / (sig * cos_t) ** 2
-        f = fit_sphere(q, weights=w, robust=True, radius=r)
+        f = fit_sphere(q, weights=w, robust=True, radius=r, start=c)
         m = f.inliers
         v = q[m] - f.centre
         dist = np.linalg.norm(v, axis=1)
@@ -1531,7 +1536,8 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
         except np.linalg.LinAlgError:
             break
         theta = theta + step
-        if abs(step[0]) < 1e-3 * max(abs(theta[0]), 1e-9):
+        # stop well inside the estimate's own uncertainty
+        if abs(step[0]) < 0.05 * np.sqrt(cov[0, 0]):
             break
     fits = []
     data = []
