@@ -295,11 +295,13 @@ def _unwrap(method: str, levels: list[_Level], phases: list[np.ndarray], *, leng
 
 
 def _fusable(sets) -> bool:
-    """The fused kernel can decode these phase groups (one dtype, 3-D stacks)."""
-    stacks = [s for members in sets.values() for _, s in members]
-    dt = stacks[0].dtype
-    return (all(s.dtype == dt and s.ndim == 3 for s in stacks) and dt.kind in "uif"
-            and len(stacks) <= _MAX_MEMBERS)
+    """The fused kernel can decode these phase groups (one dtype, (steps, rows, cols)
+    stacks of one image shape; anything else takes the exact path and its messages)."""
+    pairs = [(g, s) for members in sets.values() for g, s in members]
+    s0 = pairs[0][1]
+    return (len(pairs) <= _MAX_MEMBERS and s0.dtype.kind in "uif" and s0.ndim == 3
+            and all(s.dtype == s0.dtype and s.ndim == 3 and s.shape[0] == int(g.steps)
+                    and s.shape[1:] == s0.shape[1:] for g, s in pairs))
 
 
 def _decode_axis_fused(scan: Scan, axis: str, sets, *, length: int, noise: NoiseModel,
