@@ -336,17 +336,18 @@ def _acc4_64(r0, r1, r2, r3, a0, a1, a2, a3, b0, b1, b2, b3, nj, s, c, top, firs
 
 @nb.njit(inline="always")
 def _acc_plain(row, a, b, nj, sa, sb, sn, first):
-    """sa += a v, sb += b v, sn += v over one image row (float64; the full decode's
-    background and second-harmonic sums)."""
+    """sa += a v, sb += b v, sn += v over one image row (float32: the full decode's
+    background, exact for integer samples below 2^16 and N <= 256, and second-harmonic
+    sums, only used for the noise level)."""
     if first:
         for j in range(nj):
-            v = float(row[j])
+            v = _F32(row[j])
             sa[j] = a * v
             sb[j] = b * v
             sn[j] = v
     else:
         for j in range(nj):
-            v = float(row[j])
+            v = _F32(row[j])
             sa[j] += a * v
             sb[j] += b * v
             sn[j] += v
@@ -446,13 +447,13 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
         ok = np.empty(tile, dtype=np.bool_)
         res_ok = np.empty(tile, dtype=np.bool_)
         # full decode only
-        sa = np.empty(tile)
-        s2 = np.empty(tile)
-        c2 = np.empty(tile)
-        msa = np.empty(tile)
-        ms2 = np.empty(tile)
-        mc2 = np.empty(tile)
-        dvar = np.empty(tile)
+        sa = np.empty(tile, dtype=np.float32)
+        s2 = np.empty(tile, dtype=np.float32)
+        c2 = np.empty(tile, dtype=np.float32)
+        msa = np.empty(tile, dtype=np.float32)
+        ms2 = np.empty(tile, dtype=np.float32)
+        mc2 = np.empty(tile, dtype=np.float32)
+        dvar = np.empty(tile, dtype=np.float32)
         expo = np.empty(tile)
         sat = np.empty(tile, dtype=np.bool_)
         low = np.empty(tile, dtype=np.bool_)
@@ -510,7 +511,8 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                             t2s = s2 if first_mem else ms2
                             t2c = c2 if first_mem else mc2
                             for k in range(n_k):
-                                _acc_plain(st[k, r, j0:j1], s2w[mem, k], c2w[mem, k], nj, t2s,
+                                _acc_plain(st[k, r, j0:j1], _F32(s2w[mem, k]),
+                                           _F32(c2w[mem, k]), nj, t2s,
                                            t2c, ta, k == 0)
                         e = exposure[mem]
                         if first_mem:
@@ -546,28 +548,33 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                     if full:
                         # weight 1 / sigma_x^2 from the quadrature level (sigma_I of the
                         # phase): cos 2phi = (C^2 - S^2) / R^2, sin 2phi = -2 S C / R^2
-                        wk = 2.0 * inv_n / (xscale * xscale)
+                        # (float32: the weights and sigma need no more)
+                        wk = _F32(2.0 * inv_n / (xscale * xscale))
+                        inv_n32 = _F32(inv_n)
+                        nc32 = _F32(noise_c)
+                        ng32 = _F32(noise_gain)
+                        m_two = _F32(-2.0)
                         for j in range(nj):
-                            a = float(s32[j])
-                            b = float(c32[j])
-                            r2 = a * a + b * b
-                            pos = r2 > 0.0
-                            inv = 1.0 / (r2 if pos else 1.0)
-                            cos2 = (b * b - a * a) * inv if pos else 1.0
-                            sin2 = (-2.0 * a * b) * inv if pos else 0.0
-                            quad = (sa[j] - (cos2 * c2[j] - sin2 * s2[j])) * inv_n
-                            dvar[j] = noise_c + noise_gain * (quad if quad > 0.0 else 0.0)
+                            a = s32[j]
+                            b = c32[j]
+                            r2 = m2[j]
+                            pos = r2 > _ZERO32
+                            inv = _ONE32 / (r2 if pos else _ONE32)
+                            cos2 = (b * b - a * a) * inv if pos else _ONE32
+                            sin2 = (m_two * a * b) * inv if pos else _ZERO32
+                            quad = (sa[j] - (cos2 * c2[j] - sin2 * s2[j])) * inv_n32
+                            dvar[j] = nc32 + ng32 * (quad if quad > _ZERO32 else _ZERO32)
                         if has_nf[lev]:  # noise factor at the measured phase
                             nft = nf_tables[lev]
                             for j in range(nj):
                                 i0, i1, f = _table_index(ph[j], tab_scale, m_tab)
                                 g0 = nft[i0]
-                                fac = g0 + float(f) * (nft[i1] - g0)
+                                fac = _F32(g0 + float(f) * (nft[i1] - g0))
                                 dvar[j] = dvar[j] * fac * fac
                         for j in range(nj):  # (0 where sigma would be 0)
                             d = dvar[j]
-                            w = wk * float(m2[j]) / (d if d > 0.0 else 1.0)
-                            w32[j] = _F32(w if d > 0.0 else 0.0)
+                            w = wk * m2[j] / (d if d > _ZERO32 else _ONE32)
+                            w32[j] = w if d > _ZERO32 else _ZERO32
                     else:
                         wscale = _F32((2.0 * p * inv_n) ** 2)
                         for j in range(nj):
@@ -646,7 +653,7 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                             o_bg = out_bg[r, j0:j1]
                             o_exp = out_exp[r, j0:j1]
                             for j in range(nj):
-                                o_bg[j] = sa[j] * inv_n
+                                o_bg[j] = float(sa[j]) * inv_n
                                 o_exp[j] = expo[j]
                 if full:
                     o_sigma = out_sigma[r, j0:j1]
@@ -655,8 +662,8 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                     o_shadow = out_shadow[r, j0:j1]
                     o_rel = out_rel[r, j0:j1]
                     for j in range(nj):
-                        d = float(den[j])
-                        o_sigma[j] = 1.0 / math.sqrt(d) if o_mask[j] else np.nan
+                        sg = float(_ONE32 / math.sqrt(den[j]))
+                        o_sigma[j] = sg if o_mask[j] else np.nan
                         o_sat[j] = sat[j]
                         o_low[j] = low[j]
                         o_shadow[j] = shadow[j]
