@@ -23,10 +23,12 @@ load-independent one):
   ``python -m venv /tmp/benchvenv && /tmp/benchvenv/bin/pip install fringes
   opencv-contrib-python-headless``);
 - what bounds the speed: the rate of only reading the input once (12 bytes per pixel),
-  and of the fused kernel on a small image that stays in cache (arithmetic alone). The
-  kernel does about 3 x (8 weighted sums, an atan2 polynomial of degree 15 with one
-  division, an unwrapping step) per pixel in 8-lane float32 and the weights and the
-  result in 4-lane float64: it is arithmetic bound, well above the 15.7 MB read;
+  and of the fused kernel, one thread in CPU time, on rows that stay in cache (arithmetic
+  alone) against the full frame. The kernel does about 3 x (8 weighted sums, an atan2
+  polynomial of degree 15 with one division, an unwrapping step) per pixel in 8-lane
+  float32 and the finest level's phase and the result in 4-lane float64: it is
+  arithmetic bound (both one-thread rates agree), far below the rate of reading the
+  15.7 MB input;
 - peak memory of a full-frame fast decode (tracemalloc in a fresh process, plus input).
 
 ``--asm`` compiles the kernel afresh (in a scratch cache) and counts its packed (ymm/zmm)
@@ -249,17 +251,24 @@ def main() -> None:
     big = np.concatenate(stacks)
     med, best = timeit(lambda: _read_only(big), args.runs)
     report("floor: read the input once (numba sum)", med, best)
-    # arithmetic alone: the same kernel on 16 rows repeated (inputs stay in cache);
-    # 64 calls make up a full frame, the per-call Python overhead is timed and removed
+    # arithmetic alone: the same kernel, one thread, on 16 rows repeated (the inputs stay
+    # in cache); 64 calls make up a full frame; CPU time, the per-call overhead (timed on
+    # a tiny image) removed
     small = [np.ascontiguousarray(s[:, :16, :]) for s in stacks]
-    reps = ROWS // 16
-    med, best = timeit(lambda: [decode_axis_fast(small, PERIODS, STEPS, length=WIDTH)
-                                for _ in range(reps)], args.runs)
     tiny = [np.ascontiguousarray(s[:, :1, :8]) for s in stacks]
-    over, _ = timeit(lambda: [decode_axis_fast(tiny, PERIODS, STEPS, length=WIDTH)
-                              for _ in range(reps)], args.runs)
-    report("fused kernel on cache-resident rows", max(med - over, 1e-9),
-           max(best - over, 1e-9), "(arithmetic alone)")
+    reps = ROWS // 16
+    numba.set_num_threads(1)
+    ts, over = [], []
+    for _ in range(args.runs):
+        for arr, out in ((small, ts), (tiny, over)):
+            t = time.process_time()
+            for _ in range(reps):
+                decode_axis_fast(arr, PERIODS, STEPS, length=WIDTH)
+            out.append(time.process_time() - t)
+    numba.set_num_threads(args.threads or numba.config.NUMBA_NUM_THREADS)
+    d = [max(a - b, 1e-9) for a, b in zip(ts, over, strict=True)]
+    report("same, cache-resident rows, 1 thread, CPU s", statistics.median(d), min(d),
+           "(arithmetic alone)")
 
     peers = Path(args.peers) / "bin" / "python"
     if peers.exists():
@@ -297,15 +306,17 @@ def main() -> None:
               f"input = {peak + inp:.1f} MB")
     except ValueError:
         print(f"memory measurement failed: {res.stderr.strip()[-300:]}")
-    fast = rows[0][1]
+    one = [r for r in rows if r[0].startswith("decode_axis_fast, 1 thread")][0][1]
     floor = [r for r in rows if r[0].startswith("floor")][0][1]
-    arith = [r for r in rows if r[0].startswith("fused kernel on cache")][0][1]
-    bound = "memory (reading the input)" if fast > 0.7 * floor else (
-        "arithmetic (per pixel 3 x: weighted sums, atan2 polynomial + division, "
-        "unwrapping; weights and result in float64)"
-        if fast > 0.7 * arith else "neither alone (memory traffic + arithmetic)")
-    print(f"bound: {bound}: fast {fast:.0f}, read floor {floor:.0f}, cache-resident "
-          f"{arith:.0f} Mpx/s (load average now {os.getloadavg()[0]:.2f})")
+    arith = [r for r in rows if r[0].startswith("same, cache-resident")][0][1]
+    bound = ("arithmetic (per pixel, 3 x: 8 weighted sums, an atan2 polynomial with a "
+             "division, an unwrapping step; the result in float64)" if one > 0.7 * arith
+             else "memory traffic as much as arithmetic")
+    print(f"bound: {bound}: one thread decodes {one:.0f} Mpx per CPU second on the full "
+          f"frame, {arith:.0f} on rows that stay in cache; reading the input alone "
+          f"runs at {floor:.0f} Mpx/s; {numba.get_num_threads()} threads can at best give "
+          f"{numba.get_num_threads() * one:.0f} Mpx/s on idle cores "
+          f"(load average now {os.getloadavg()[0]:.2f})")
     if args.asm:
         res = subprocess.run([sys.executable, "-c", _ASM], capture_output=True, text=True,
                              timeout=1200, env={**os.environ,
