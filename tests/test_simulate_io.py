@@ -154,3 +154,12 @@ def test_cli_simulate_calibration(tmp_path):
     assert doc["pose"]["kind"] in ("mirror-a", "random")
     assert len(doc["features"]["circle_centres_px"]) == 99
     assert main(["simulate", "calibration", str(tmp_path / "z"), "--poses", "2"]) == 2
+
+
+def test_cli_hdr_help_names_the_exposures_the_rig_uses(capsys):
+    from telefringe.simulate.presets import HDR_EXPOSURES
+
+    assert main(["simulate", "scan", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert ", ".join(f"{e:g}" for e in HDR_EXPOSURES[:-1]) + f" and {HDR_EXPOSURES[-1]:g}" \
+        in text, text

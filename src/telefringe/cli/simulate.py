@@ -114,7 +114,8 @@ def scan(
     scene: _Scene = typer.Option(..., "--scene", help="What to scan."),
     rig: _Rig = typer.Option(_Rig.paper, "--rig", help="Virtual rig preset."),
     z: float = typer.Option(0.0, "--z", help="Raise the scene by this many mm (not bga)."),
-    hdr: bool = typer.Option(False, "--hdr", help="Three exposures (1, 0.3, 0.1) per group."),
+    hdr: bool = typer.Option(False, "--hdr", help="Three exposures per group: 4, 0.6 and 0.1 times "
+                             "the base exposure."),
     seed: int = typer.Option(0, "--seed", help="Seed of the scene (bga) and the noise."),
     bit_depth: int = typer.Option(8, "--bit-depth", help="Camera bit depth: 8, 12 or 16."),
     force: bool = typer.Option(False, "--force", help="Replace OUT if it exists."),
