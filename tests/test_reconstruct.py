@@ -524,3 +524,28 @@ def test_binned_height_map():
     assert hm.binned(1) is hm
     with pytest.raises(TriangulationError, match="factor"):
         hm.binned(0)
+
+
+def test_scan_radiance_takes_the_longest_unsaturated_exposure():
+    from telefringe.reconstruct import scan_radiance
+    from telefringe.scan import PhaseGroup, Scan, ScanManifest
+
+    # two groups at exposure 1 and one at 0.25; the true radiance (DN at exposure 1) is
+    # 100 on the left half and 400 (saturating exposure 1) on the right
+    rad = np.array([[100.0, 100.0, 400.0, 400.0]] * 2)
+    k = np.arange(4)[:, None, None]
+    groups, stacks = [], []
+    for periods, exposure in ((1, 1.0), (8, 1.0), (8, 0.25)):
+        groups.append(PhaseGroup("u", periods, 4, exposure, 0.0,
+                                 tuple(f"{periods}_{exposure}_{i}.png" for i in range(4))))
+        img = exposure * rad * (1.0 + 0.5 * np.cos(np.pi * k / 2 + periods))
+        stacks.append(np.clip(np.round(img), 0, 255).astype(np.uint8))
+    scan = Scan(ScanManifest(64, 64, tuple(groups)), tuple(stacks))
+    out = scan_radiance(scan)
+    assert out.shape == (2, 4) and out.dtype == np.float32
+    # left: mean of the 8 unsaturated images at exposure 1 (rounding to DN: <= 0.5 DN)
+    assert np.allclose(out[:, :2], 100.0, atol=0.5)
+    # right: exposure 1 saturates, so the 0.25 group divided by 0.25 (<= 0.5 / 0.25 DN)
+    assert np.allclose(out[:, 2:], 400.0, atol=2.0)
+    with pytest.raises(ValueError, match="no phase images"):
+        scan_radiance(Scan(ScanManifest(64, 64, ()), ()))

@@ -63,6 +63,7 @@ __all__ = [
     "Reconstruction",
     "reconstruct_scan",
     "radiance_image",
+    "scan_radiance",
     "FLAG_NO_PHASE",
     "FLAG_INCONSISTENT",
     "FLAG_OUTSIDE",
@@ -1166,9 +1167,10 @@ class Reconstruction:
     height : HeightMap or None
     texture : (rows, cols) ndarray of float32, the fringe-free camera image (white frame
         or mean of a phase group), for marker detection and display.
-    radiance : (rows, cols) ndarray of float32 or None, the decoder's background A
-        divided by the exposure it came from (HDR: unsaturated where one exposure was),
-        in DN at exposure 1; for locating specular highlights (BGA).
+    radiance : (rows, cols) ndarray of float32 or None, brightness per unit exposure
+        (DN at exposure 1) from the mean of every phase image (:func:`scan_radiance`; HDR:
+        the longest unsaturated exposure), or the decoder's background when the scan has
+        no phase images; for locating specular highlights (BGA).
     """
 
     coords: object
@@ -1200,6 +1202,45 @@ def radiance_image(coords) -> np.ndarray | None:
         return r.astype(np.float32)
     bg = getattr(coords, "background", None)
     return None if bg is None else np.asarray(bg, dtype=np.float32)
+
+
+def scan_radiance(scan) -> np.ndarray:
+    """(rows, cols) float32 brightness per unit exposure from every phase image of a scan.
+
+    Per exposure, the mean of all its phase images (whole periods of every group: the
+    pattern's mean level, so the background averaged over all groups, with sqrt(images)
+    less noise than one group's background); per pixel, the longest exposure none of whose
+    images saturates (the shortest where all do), divided by that exposure. This is the
+    image that locates BGA balls by their highlights (:func:`telefringe.metrology.
+    measure_bga`).
+
+    Raises
+    ------
+    ValueError
+        When the scan has no phase images.
+    """
+    from .scan import PhaseGroup
+
+    sums: dict[float, np.ndarray] = {}
+    counts: dict[float, int] = {}
+    sat: dict[float, np.ndarray] = {}
+    for g, st in zip(scan.manifest.groups, scan.stacks, strict=True):
+        if not isinstance(g, PhaseGroup):
+            continue
+        e = float(g.exposure)
+        total = np.sum(st, axis=0, dtype=np.float64)
+        sums[e] = sums[e] + total if e in sums else total
+        counts[e] = counts.get(e, 0) + st.shape[0]
+        s_ = np.any(st >= scan.max_value, axis=0)
+        sat[e] = sat[e] | s_ if e in sat else s_
+    if not sums:
+        raise ValueError("the scan has no phase images")
+    exps = sorted(sums)
+    out = sums[exps[0]] / (counts[exps[0]] * exps[0])
+    for e in exps[1:]:
+        ok = ~sat[e]
+        out[ok] = (sums[e] / (counts[e] * e))[ok]
+    return out.astype(np.float32)
 
 
 def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
@@ -1247,4 +1288,8 @@ def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
     if with_height_map and cloud.count >= 3:
         hm = height_map(cloud, pixel_mm=pixel_mm)
     texture = np.asarray(fringe_free_image(scan), dtype=np.float32)
-    return Reconstruction(coords, cloud, hm, texture, radiance_image(coords))
+    try:
+        radiance = scan_radiance(scan)
+    except ValueError:  # no phase images: the decoder's background
+        radiance = radiance_image(coords)
+    return Reconstruction(coords, cloud, hm, texture, radiance)

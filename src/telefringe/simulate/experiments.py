@@ -36,7 +36,6 @@ __all__ = [
     "paper_rig",
     "unbin_rig",
     "bga_window",
-    "hdr_radiance",
     "run_calibration",
     "run_plate",
     "run_bga",
@@ -276,38 +275,6 @@ def _five_pairs(meas, rows: int, cols: int) -> list[tuple[tuple[int, int], tuple
     return pairs
 
 
-def hdr_radiance(scan) -> np.ndarray:
-    """(rows, cols) mean brightness per unit exposure from every phase image of a scan.
-
-    Per exposure, the mean of all its phase images (whole periods of every group: the
-    pattern's mean level, so the background A averaged over all groups, with sqrt(groups)
-    less noise than one group's); per pixel, the longest exposure none of whose images
-    saturates (the shortest where all do), divided by that exposure.
-    """
-    from ..scan import PhaseGroup
-
-    sums: dict[float, np.ndarray] = {}
-    counts: dict[float, int] = {}
-    sat: dict[float, np.ndarray] = {}
-    for g, st in zip(scan.manifest.groups, scan.stacks, strict=True):
-        if not isinstance(g, PhaseGroup):
-            continue
-        e = float(g.exposure)
-        a = np.asarray(st, dtype=np.float64)
-        sums[e] = sums.get(e, 0.0) + a.sum(axis=0)
-        counts[e] = counts.get(e, 0) + a.shape[0]
-        s_ = np.any(a >= scan.max_value, axis=0)
-        sat[e] = sat[e] | s_ if e in sat else s_
-    if not sums:
-        raise ValueError("the scan has no phase images")
-    exps = sorted(sums)
-    out = sums[exps[0]] / counts[exps[0]] / exps[0]
-    for e in exps[1:]:
-        ok = ~sat[e]
-        out[ok] = (sums[e] / counts[e] / e)[ok]
-    return out
-
-
 def run_bga(vrig: VirtualRig, rig: Rig, *, seed: int = 0, hdr: bool = True) -> BGAResult:
     """Scan the default BGA (HDR unless ``hdr`` is False), measure it, compare with truth."""
     from ..metrology import BGANominal, measure_bga, seating_plane_coplanarity
@@ -330,7 +297,7 @@ def run_bga(vrig: VirtualRig, rig: Rig, *, seed: int = 0, hdr: bool = True) -> B
     # diameter), the camera's point spread modelled (its variance estimated from the
     # caps), points within 2.5 px of the highlight (whose light the point spread carries
     # into them, beyond first order) and tilted more than 60 deg dropped; see measure_bga
-    meas = measure_bga(rec.cloud, nominal, image=hdr_radiance(scan), seed=seed)
+    meas = measure_bga(rec.cloud, nominal, image=rec.radiance, seed=seed)
 
     # the truth, indexed like the measurement
     true_centres = bga.centres_world()
