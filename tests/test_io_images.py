@@ -318,3 +318,33 @@ def test_write_png_refuses_what_it_cannot_store(tmp_path):
         with pytest.raises(ValueError, match="write_png"):
             write_png(tmp_path / "x.png", bad)
     assert not (tmp_path / "x.png").exists()
+
+
+def _png_bytes(raw: bytes, cols: int, rows: int) -> bytes:
+    """A grey 8-bit PNG around raw (filtered) scanlines, with valid checksums."""
+
+    def chunk(ctype: bytes, body: bytes) -> bytes:
+        return (struct.pack(">I", len(body)) + ctype + body
+                + struct.pack(">I", zlib.crc32(ctype + body)))
+
+    head = struct.pack(">IIBBBBB", cols, rows, 8, 0, 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", head)
+            + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+
+
+@pytest.mark.parametrize("bad_row", [None, 0, 500, 999])
+def test_png_row_filters_are_checked_across_inflate_blocks(tmp_path, bad_row):
+    # 1100 x 1000 px: 1.1 MB of raw data, inflated in 1 MiB pieces, so the last rows'
+    # filter bytes sit in the second piece at an offset that is not a row start of it
+    cols, rows = 1100, 1000
+    raw = bytearray((np.arange(rows * (cols + 1)) % 251).astype(np.uint8).tobytes())
+    raw[::cols + 1] = b"\x00" * rows  # filter "none" on every row
+    if bad_row is not None:
+        raw[bad_row * (cols + 1)] = 7
+    path = tmp_path / "f.png"
+    path.write_bytes(_png_bytes(bytes(raw), cols, rows))
+    if bad_row is None:
+        assert read_image(path).shape == (rows, cols)
+    else:
+        with pytest.raises(InputError, match="invalid row filter"):
+            read_image(path)

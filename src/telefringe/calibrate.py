@@ -54,7 +54,6 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 
 from .model import Intrinsics, Rig, TelecentricDevice, rotation_from_rotvec
 
@@ -272,6 +271,8 @@ class _Problem:
         cols = self.colmap[np.concatenate(cols)]
         vals = np.concatenate(vals)
         keep = cols >= 0
+        import scipy.sparse as sp  # (here: loading the rig need not import scipy)
+
         J = sp.csr_matrix((vals[keep], (rows[keep], cols[keep])),
                           shape=(nrow, int(self.free.sum())))
         self._cache_x = np.array(x, copy=True)

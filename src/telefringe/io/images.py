@@ -323,8 +323,8 @@ def _check_png_chunks(path: Path, data: bytes) -> None:
                     raise InputError(f"{path}: corrupt PNG (more image data than the "
                                      f"{cols} x {rows} header declares)")
                 if not interlace and out:
-                    offsets = np.arange(got, got + len(out))
-                    filters = np.frombuffer(out, np.uint8)[offsets % stride == 0]
+                    # the filter bytes: every stride-th byte of the raw stream
+                    filters = np.frombuffer(out, np.uint8)[(-got) % stride::stride]
                     if np.any(filters > 4):
                         raise InputError(f"{path}: corrupt PNG (invalid row filter)")
                 got += len(out)
