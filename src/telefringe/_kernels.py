@@ -1,4 +1,6 @@
-"""Numba kernels of the decoder (private). No fastmath anywhere; ``cache=True``."""
+"""Numba kernels of the decoder (private; the phase-error model's are in
+:mod:`telefringe._gamma_kernels`). ``cache=True``; no fastmath except FMA contraction in
+the fused kernel (bounded by tests)."""
 
 from __future__ import annotations
 
@@ -11,117 +13,13 @@ TWO_PI = 2.0 * math.pi
 INV_TWO_PI = 1.0 / TWO_PI
 
 
-@nb.njit(cache=True, nogil=True)
-def harmonic_sum(phase, harmonics, cos_coef, sin_coef, out):
-    """out[i] = sum_m cos_coef[m] cos(h_m phase[i]) + sin_coef[m] sin(h_m phase[i]).
-
-    ``phase`` and ``out`` are 1-D float64; harmonics int64 (n,), any orders >= 1. The
-    powers of exp(i phase) come from a complex recurrence (error ~ order * 1e-16).
-    """
-    n = phase.size
-    hmax = 0
-    for m in range(harmonics.size):
-        if harmonics[m] > hmax:
-            hmax = harmonics[m]
-    ca = np.zeros(hmax + 1)
-    sa = np.zeros(hmax + 1)
-    for m in range(harmonics.size):
-        ca[harmonics[m]] += cos_coef[m]
-        sa[harmonics[m]] += sin_coef[m]
-    for i in range(n):
-        c1 = math.cos(phase[i])
-        s1 = math.sin(phase[i])
-        c = 1.0
-        s = 0.0
-        acc = 0.0
-        for h in range(1, hmax + 1):
-            c, s = c * c1 - s * s1, s * c1 + c * s1
-            acc += ca[h] * c + sa[h] * s
-        out[i] = acc
-
-
-@nb.njit(cache=True, nogil=True)
-def _features(phase, harmonics, scale, out, start):
-    c1 = math.cos(phase)
-    s1 = math.sin(phase)
-    c = 1.0
-    s = 0.0
-    h = 0
-    j = 0
-    for m in range(harmonics.size):
-        target = harmonics[m]
-        while h < target:
-            c, s = c * c1 - s * s1, s * c1 + c * s1
-            h += 1
-        out[start + 2 * j] = scale * c
-        out[start + 2 * j + 1] = scale * s
-        j += 1
-
-
-@nb.njit(cache=True, nogil=True)
-def pair_normal_equations(phase_a, phase_b, scale_a, scale_b, harm_a, harm_b, off_a, off_b,
-                          target, weight, ata, atb):
-    """Accumulate weighted normal equations ``ata += J^T W J``, ``atb += J^T W target`` for
-    rows ``J = [scale_a h_a(phase_a), scale_b h_b(phase_b)]``, h the (cos, sin) harmonics
-    (sorted orders) placed at parameter offsets off_a, off_b. Per-sample scales and
-    weights; samples with weight <= 0 are skipped.
-    """
-    na = 2 * harm_a.size
-    nbb = 2 * harm_b.size
-    nf = na + nbb
-    f = np.empty(nf)
-    loc = np.zeros((nf, nf))
-    locb = np.zeros(nf)
-    for i in range(phase_a.size):
-        w = weight[i]
-        if w <= 0.0:
-            continue
-        _features(phase_a[i], harm_a, scale_a[i], f, 0)
-        _features(phase_b[i], harm_b, scale_b[i], f, na)
-        t = target[i]
-        for p in range(nf):
-            fp = f[p] * w
-            locb[p] += fp * t
-            for q in range(p, nf):
-                loc[p, q] += fp * f[q]
-    for p in range(nf):
-        ip = off_a + p if p < na else off_b + p - na
-        atb[ip] += locb[p]
-        for q in range(p, nf):
-            iq = off_a + q if q < na else off_b + q - na
-            ata[ip, iq] += loc[p, q]
-            if iq != ip:
-                ata[iq, ip] += loc[p, q]
-
-
-@nb.njit(cache=True, nogil=True)
-def table_correct(phase, table, out):
-    """out = wrap(phase - g(phase)), g linearly interpolated from ``table`` sampled at
-    -pi + 2 pi j / M (periodic). 1-D float64 arrays; result in (-pi, pi]."""
-    m = table.size
-    scale = m / TWO_PI
-    for i in range(phase.size):
-        p = phase[i]
-        t = (p + math.pi) * scale
-        j = int(math.floor(t))
-        f = t - j
-        j0 = j % m
-        j1 = (j0 + 1) % m
-        g = table[j0] * (1.0 - f) + table[j1] * f
-        q = p - g
-        if q > math.pi:
-            q -= TWO_PI
-        elif q <= -math.pi:
-            q += TWO_PI
-        out[i] = q
-
-
 # ------------------------------------------------------------------- fused fast decoding
 # Written so that LLVM vectorises every inner loop (checked in the assembly, see
 # tests/test_decode_fast.py): straight loops over contiguous 1-D scratch rows, float32
 # where it is exact or bounded, float32 constants only in float32 maths, selects instead
-# of branches, error_model="numpy" (no division checks). No fastmath: the compiler keeps
-# the order and rounding of every operation.
+# of branches, error_model="numpy" (no division checks). No reassociation: the only
+# fastmath flag is FMA contraction (one rounding instead of two), where tests bound the
+# result against the exact float64 path.
 
 #: atan(a) = a P(a^2) on [0, 1]: degree 7 in a^2, near-minimax (iteratively reweighted
 #: least squares). Largest error 3.7e-8 rad in exact arithmetic, 1.4e-7 rad evaluated in
@@ -685,54 +583,3 @@ def read_floor(stack):
     return total
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def invert_harmonic(measured, harmonics, cos_coef, sin_coef, out):
-    """Solve ``phi + e(phi) = measured`` per sample by Newton's method, where
-    ``e(phi) = sum_m cos_coef[m] cos(h_m phi) + sin_coef[m] sin(h_m phi)``.
-
-    ``measured`` and ``out`` are 1-D float64. Each sample starts at
-    ``measured - e(measured)`` and stops when its step is below 1e-14 rad (at most 60
-    steps). Returns False when ``1 + e'(phi) <= 0`` is met (the model is not invertible
-    there), True otherwise.
-    """
-    n = measured.size
-    hmax = 0
-    for m in range(harmonics.size):
-        if harmonics[m] > hmax:
-            hmax = harmonics[m]
-    ca = np.zeros(hmax + 1)
-    sa = np.zeros(hmax + 1)
-    for m in range(harmonics.size):
-        ca[harmonics[m]] += cos_coef[m]
-        sa[harmonics[m]] += sin_coef[m]
-    bad = np.zeros(n, dtype=np.bool_)
-    for i in nb.prange(n):
-        x = measured[i]
-        phi = x
-        for it in range(61):
-            c1 = math.cos(phi)
-            s1 = math.sin(phi)
-            c = 1.0
-            s = 0.0
-            e = 0.0
-            de = 0.0
-            for h in range(1, hmax + 1):
-                c, s = c * c1 - s * s1, s * c1 + c * s1
-                e += ca[h] * c + sa[h] * s
-                de += h * (sa[h] * c - ca[h] * s)
-            if it == 0:
-                phi = x - e  # the start, as e is evaluated at the measured phase
-                continue
-            d = 1.0 + de
-            if d <= 0.0:
-                bad[i] = True
-                break
-            step = (phi + e - x) / d
-            phi = phi - step
-            if abs(step) < 1e-14:
-                break
-        out[i] = phi
-    for i in range(n):
-        if bad[i]:
-            return False
-    return True
