@@ -154,6 +154,8 @@ def test_every_command_has_help_with_an_example(path, capsys):
     out = capsys.readouterr()
     assert code == 0, out.err
     assert "Example" in out.out, f"`telefringe {' '.join(path)} --help` shows no example"
+    # a flag takes no value: no type is shown beside it
+    assert "<bool>" not in out.out, f"`telefringe {' '.join(path)} --help` shows <bool>"
 
 
 # --------------------------------------------------------------------------- real commands

@@ -39,6 +39,21 @@ def _main(
     state.quiet, state.verbose, state.debug = quiet, verbose, debug
 
 
+def _flags_show_no_type() -> None:
+    """A flag takes no value, yet recent typer versions print a '<bool>' type beside it in
+    --help; drop that column entry for flags (no-op where typer differs)."""
+    option = getattr(getattr(typer, "core", None), "TyperOption", None)
+    shown = getattr(option, "display_type_rich", None)
+    if shown is None or getattr(shown, "_telefringe", False):
+        return
+
+    def display_type_rich(self, ctx):
+        return None if getattr(self, "is_flag", False) else shown(self, ctx)
+
+    display_type_rich._telefringe = True
+    option.display_type_rich = display_type_rich
+
+
 def _register_all():
     from . import calibrate, decode, measure, paper, reconstruct, simulate
 
@@ -57,6 +72,7 @@ def _register_all():
             grp.short_help = " ".join(doc.strip().split("\n\n")[0].split())
 
 
+_flags_show_no_type()
 _register_all()
 
 
