@@ -809,6 +809,10 @@ class RigCalibration:
     warnings : tuple of str, things a person should read (skipped poses, conventions).
     camera_alone, projector_alone : DeviceCalibration or None, the single-device
         calibrations that started the joint adjustment (not stored in rig.json).
+    phase_errors : dict ``(axis, periods, steps) -> PhaseErrorModel``, the projector
+        nonlinearity learned from the calibration scans (mean over the poses of each
+        pose's fit, :func:`telefringe.gamma.mean_model`); empty when it was not learned.
+        Pass it to :func:`telefringe.decode.decode` to skip learning it from every scan.
     """
 
     rig: Rig
@@ -838,6 +842,7 @@ class RigCalibration:
     warnings: tuple[str, ...] = ()
     camera_alone: DeviceCalibration | None = field(default=None, repr=False)
     projector_alone: DeviceCalibration | None = field(default=None, repr=False)
+    phase_errors: dict = field(default_factory=dict, repr=False)
 
     @property
     def camera(self) -> TelecentricDevice:
@@ -1156,6 +1161,7 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
                   np.zeros(r.size)], axis=1)
     dark = getattr(target, "circles", "dark-on-light") == "dark-on-light"
     names, cam_obs, proj_obs, warns, good = [], [], [], [], []
+    learned: dict[tuple[str, int, int], list] = {}
     cam_size = proj_size = None
     for done, (name, scan) in enumerate(scans, start=1):
         man = scan.manifest
@@ -1184,6 +1190,8 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
         coords = decode(scan, **(decode_options or {}))
         if getattr(coords, "v_p", None) is None:
             raise CalibrationError(f"pose {name}: the decoder returned no v_p")
+        for key, model in _learned_models(scan, coords).items():
+            learned.setdefault(key, []).append(model)
         pobs = projector_observations(coords.u_p, coords.v_p, coords.mask, det)
         names.append(str(name))
         cam_obs.append(np.where(det.found[:, None], det.centers, np.nan))
@@ -1201,11 +1209,36 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
     if sum(good) < min_poses:
         raise CalibrationError(f"only {sum(good)} good pose(s), at least {min_poses} needed"
                                + (f" ({'; '.join(warns)})" if warns else ""))
-    return calibrate_rig(P, np.array(cam_obs), np.array(proj_obs),
-                         camera_pixel_size=camera_pixel_size,
-                         projector_pixel_size=projector_pixel_size, camera_size=cam_size,
-                         projector_size=proj_size, reference_pose=names.index(reference_pose),
-                         pose_names=names, grid_shape=(rows, cols),
-                         projector_side=projector_side, min_poses=min_poses,
-                         warnings=warns, **kwargs)
+    calib = calibrate_rig(P, np.array(cam_obs), np.array(proj_obs),
+                          camera_pixel_size=camera_pixel_size,
+                          projector_pixel_size=projector_pixel_size, camera_size=cam_size,
+                          projector_size=proj_size, reference_pose=names.index(reference_pose),
+                          pose_names=names, grid_shape=(rows, cols),
+                          projector_side=projector_side, min_poses=min_poses,
+                          warnings=warns, **kwargs)
+    if not learned:
+        return calib
+    from dataclasses import replace
+
+    from .gamma import mean_model
+
+    return replace(calib, phase_errors={k: mean_model(v) for k, v in sorted(learned.items())})
+
+
+def _learned_models(scan, coords) -> dict:
+    """The nonlinearity models a decode learned from ``scan``: ``(axis, periods, steps) ->
+    PhaseErrorModel`` (models given to the decoder or not learned are left out)."""
+    from .scan import PhaseGroup
+
+    out = {}
+    for axis, ax in (getattr(coords, "axes", None) or {}).items():
+        fit = getattr(ax, "phase_errors", None)
+        if fit is None or not fit.n_samples:
+            continue
+        steps = {int(g.periods): int(g.steps) for g in scan.manifest.groups
+                 if isinstance(g, PhaseGroup) and g.axis == axis}
+        for m in fit.models:
+            if int(m.periods) in steps:
+                out[(axis, int(m.periods), steps[int(m.periods)])] = m
+    return out
 

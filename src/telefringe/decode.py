@@ -304,6 +304,21 @@ def _fusable(sets) -> bool:
                     and s.shape[1:] == s0.shape[1:] for g, s in pairs))
 
 
+def _given_fit(phase_errors, axis: str, sets) -> PhaseErrorFit | None:
+    """The nonlinearity models given for every group of ``axis`` (keys ``(axis, periods,
+    steps)``, values PhaseErrorModel), in ``sets`` order, or None when one is missing."""
+    if not phase_errors:
+        return None
+    models = []
+    for periods, members in sets.items():
+        m = phase_errors.get((axis, int(periods), int(members[0][0].steps)))
+        if not isinstance(m, PhaseErrorModel):
+            return None
+        models.append(m if m.periods == periods else
+                      PhaseErrorModel(int(periods), m.harmonics, m.cos_coef, m.sin_coef))
+    return PhaseErrorFit(tuple(models), float("nan"), 0)
+
+
 def _decode_axis_fused(scan: Scan, axis: str, sets, *, length: int, noise: NoiseModel,
                        min_mod: float, max_residual: float, fit) -> AxisCoordinates:
     """:func:`decode_axis` for a hierarchical ladder (HDR sets allowed) in one pass of the
@@ -333,7 +348,7 @@ def _decode_axis_fused(scan: Scan, axis: str, sets, *, length: int, noise: Noise
 def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction: bool = True,
                 min_modulation: float | None = None, noise: NoiseModel | None = None,
                 max_residual: float = np.pi / 2, gray_min_contrast: float | None = None,
-                exact: bool = False) -> AxisCoordinates:
+                exact: bool = False, phase_errors=None) -> AxisCoordinates:
     """Decode one projector axis of a scan (see :func:`decode` for the parameters).
 
     Returns
@@ -360,9 +375,10 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
     method = choose_method(list(sets), length=length,
                            gray_bits=gray[0].bits if gray else None, method=method)
     fusable = not exact and method == "hierarchical" and _fusable(sets)
-    if fusable and not (gamma_correction and len(sets) >= 2):
-        fit = None
-        if len(sets) >= 2 or gamma_correction:
+    given = _given_fit(phase_errors, axis, sets) if gamma_correction else None
+    if fusable and (given is not None or not (gamma_correction and len(sets) >= 2)):
+        fit = given
+        if fit is None and (len(sets) >= 2 or gamma_correction):
             fit = PhaseErrorFit(tuple(PhaseErrorModel.zero(p) for p in sets), 0.0, 0)
         return _decode_axis_fused(scan, axis, sets, length=length, noise=noise,
                                   min_mod=min_mod, max_residual=max_residual, fit=fit)
@@ -410,7 +426,12 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
 
     fit = None
     used, unw = None, None
-    if gamma_correction and len(levels) >= 2 and good.any():
+    if given is not None:  # learned beforehand (e.g. by the calibration)
+        fit = given
+        sigmas = [s * np.abs(m.noise_factor(p))
+                  for m, p, s in zip(fit.models, phases, sigmas, strict=True)]
+        phases = [m.correct(p) for m, p in zip(fit.models, phases, strict=True)]
+    elif gamma_correction and len(levels) >= 2 and good.any():
         per = [lv.periods for lv in levels]
         ratios_integer = all(b % a == 0 for a, b in zip(sorted(per)[:-1], sorted(per)[1:],
                                                          strict=True))
@@ -465,7 +486,8 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
 def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
            min_modulation: float | None = None, noise: NoiseModel | None = None,
            max_residual: float = np.pi / 2,
-           gray_min_contrast: float | None = None, exact: bool = False) -> ProjectorCoordinates:
+           gray_min_contrast: float | None = None, exact: bool = False,
+           phase_errors=None) -> ProjectorCoordinates:
     """Projector coordinates of every camera pixel of a scan.
 
     Parameters
@@ -488,6 +510,12 @@ def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
         arctangent and unwrapping, the result assembled in float64; u_p within 1e-4 px of
         the exact path, tested); the other methods always take the exact path. True:
         float64 NumPy throughout (``numpy.arctan2``).
+    phase_errors : mapping ``(axis, periods, steps) -> PhaseErrorModel`` or None, the
+        projector nonlinearity learned beforehand (e.g.
+        :attr:`telefringe.calibrate.RigCalibration.phase_errors`). An axis whose every
+        group has a model is corrected with them and nothing is learned from the scan
+        (faster); other axes are learned as usual. Ignored when ``gamma_correction`` is
+        False.
 
     Returns
     -------
@@ -509,7 +537,7 @@ def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
     res = {a: decode_axis(scan, a, method=method, gamma_correction=gamma_correction,
                           min_modulation=min_modulation, noise=noise,
                           max_residual=max_residual, gray_min_contrast=gray_min_contrast,
-                          exact=exact)
+                          exact=exact, phase_errors=phase_errors)
            for a in axes_present}
     u = res.get("u")
     v = res.get("v")

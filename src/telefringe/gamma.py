@@ -43,6 +43,7 @@ __all__ = [
     "PhaseErrorModel",
     "PhaseErrorFit",
     "default_harmonics",
+    "mean_model",
     "fit_phase_errors",
     "periodic_error",
     "ResponseCurve",
@@ -246,6 +247,27 @@ class PhaseErrorFit:
     models: tuple[PhaseErrorModel, ...]
     residual_rms: float
     n_samples: int
+
+
+def mean_model(models: Sequence[PhaseErrorModel]) -> PhaseErrorModel:
+    """The mean of several fits of one group's error (e.g. one per calibration pose): the
+    union of their harmonics, each coefficient averaged over all fits (0 where a fit left
+    the harmonic out as insignificant). Raises ValueError for fits of different periods.
+    """
+    models = list(models)
+    if not models:
+        raise ValueError("mean_model needs at least one model")
+    per = {int(m.periods) for m in models}
+    if len(per) != 1:
+        raise ValueError(f"mean_model: models of different periods {sorted(per)}")
+    harm = sorted({int(h) for m in models for h in m.harmonics})
+    cos = np.zeros(len(harm))
+    sin = np.zeros(len(harm))
+    for m in models:
+        for h, c, s_ in zip(m.harmonics, m.cos_coef, m.sin_coef, strict=True):
+            cos[harm.index(int(h))] += c
+            sin[harm.index(int(h))] += s_
+    return PhaseErrorModel(per.pop(), tuple(harm), cos / len(models), sin / len(models))
 
 
 def default_harmonics(steps: int, *, max_order: int = 24) -> tuple[int, ...]:

@@ -1256,7 +1256,10 @@ def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
     pixel_mm : grid spacing of the height map (default: the camera's footprint).
     with_height_map : bool, resample the cloud on a regular XY grid.
     **decode_options : passed to :func:`telefringe.decode.decode` (``method``,
-        ``gamma_correction``, ``min_modulation``, ...).
+        ``gamma_correction``, ``min_modulation``, ``phase_errors``, ...). A
+        :class:`~telefringe.calibrate.RigCalibration` that learned the projector's
+        nonlinearity (``phase_errors``) gives it to the decoder unless ``phase_errors`` is
+        passed here (``phase_errors=None`` learns it from the scan instead).
 
     Raises
     ------
@@ -1268,6 +1271,9 @@ def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
     from .decode import decode
     from .targets import fringe_free_image
 
+    learned = getattr(rig, "phase_errors", None)  # a RigCalibration's projector model
+    if learned and "phase_errors" not in decode_options:
+        decode_options = {**decode_options, "phase_errors": learned}
     rig = _as_rig(rig)
     shape = tuple(int(n) for n in scan.stacks[0].shape[1:])
     kc = rig.camera.intrinsics

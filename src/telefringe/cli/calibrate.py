@@ -148,8 +148,9 @@ def calibrate_cmd(
         _PP.estimate, "--principal-point",
         help="estimate: free with a weak prior at the image centre; fixed: at the centre."),
     gamma: bool = typer.Option(True, "--gamma/--no-gamma",
-                               help="Remove the projector gamma's phase error when decoding "
-                                    "(slower; 4-step fringes barely need it)."),
+                               help="Learn the projector's nonlinearity (gamma) from each "
+                                    "pose's fringes, remove it when decoding, and keep the "
+                                    "mean model in rig.json for reconstruction."),
     force: bool = typer.Option(False, "--force", help="Replace OUTPUT (and the report)."),
 ):
     """Calibrate camera and projector from a calibration set (one scan per plate pose).
@@ -196,6 +197,10 @@ def calibrate_cmd(
         for o in calib.outliers:
             info(f"  {o.device} {o.pose} marker (row {o.marker[0]}, col {o.marker[1]}): "
                  f"residual ({o.residual[0]:+.3f}, {o.residual[1]:+.3f}) px")
+    if calib.phase_errors:
+        peaks = ", ".join(f"{a} {p}: {m.peak:.4f}" for (a, p, _), m in calib.phase_errors.items())
+        info(f"projector nonlinearity learned for {len(calib.phase_errors)} fringe groups "
+             f"(peak phase error, rad: {peaks}); kept in the rig for reconstruction")
     save_rig(output, calib, force=force)
     info(f"wrote {output}")
     if report is not None:

@@ -41,6 +41,10 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
 
     output = Path(output)
     check_can_write(output, force=force)
+    # the projector nonlinearity learned at calibration, unless the caller chose
+    learned = getattr(rig, "phase_errors", None)
+    if learned and "phase_errors" not in decode_options:
+        decode_options = {**decode_options, "phase_errors": learned}
     rig = getattr(rig, "rig", rig)  # load_rig gives a RigCalibration holding the Rig
     man = load_scan_manifest(scan_dir)
     kp = rig.projector.intrinsics
@@ -148,8 +152,13 @@ def reconstruct_cmd(
                                             "this (projector px)."),
     ply: bool = typer.Option(True, "--ply/--no-ply", help="Also write cloud.ply."),
     gamma: bool = typer.Option(True, "--gamma-correction/--no-gamma-correction",
-                               help="Learn and remove the projector nonlinearity from the "
+                               help="Remove the projector nonlinearity: with the rig's model "
+                                    "(learned at calibration) where it has one for the "
+                                    "scan's fringe groups, else learned from the scan's "
                                     "fringe ladder."),
+    refit_gamma: bool = typer.Option(False, "--refit-gamma",
+                                     help="Learn the nonlinearity from this scan even when "
+                                          "the rig has a model (slower)."),
     method: str = typer.Option("auto", "--method",
                                help="Unwrapping: auto, hierarchical, heterodyne, "
                                     "number-theoretic or gray."),
@@ -174,10 +183,17 @@ def reconstruct_cmd(
     from ..io.rig import load_rig
 
     rig_obj = load_rig(rig)
+    extra = {"phase_errors": None} if refit_gamma else {}
     rec = reconstruct_to_folder(scan, rig_obj, output, force=force, pixel_mm=pixel_mm,
                                 max_residual=max_residual, ply=ply, gamma_correction=gamma,
-                                method=method)
+                                method=method, **extra)
     c = rec.cloud
+    for name, ax in (getattr(rec.coords, "axes", None) or {}).items():
+        fit = getattr(ax, "phase_errors", None)
+        if gamma and fit is not None and any(m.harmonics for m in fit.models):
+            src = "learned from the scan" if fit.n_samples else "the rig's model"
+            detail(f"projector nonlinearity, axis {name}: {src}; peak error per group "
+                   + ", ".join(f"{m.periods}: {m.peak:.4f} rad" for m in fit.models))
     info(f"{c.count} points ({c.count / c.mask.size:.1%} of the pixels)")
     import numpy as np
 

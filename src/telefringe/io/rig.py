@@ -31,6 +31,11 @@ the observations and the target poses). Layout::
         "outliers": [{"device": "camera", "pose": "pose_03", "marker": [1, 3],
                       "residual_px": [0.8, -0.5]}],
         "warnings": ["..."]
+      },
+      "phase_errors": {                      # optional: the projector nonlinearity
+        "model": "<in words>",
+        "groups": [{"axis": "u", "periods": 64, "steps": 4, "harmonics": [4, 8],
+                    "cos_rad": [...], "sin_rad": [...]}, ...]
       }
     }
 
@@ -65,6 +70,11 @@ _MODEL = ("telecentric (scaled orthographic): [xu, yu] = m (R[0:2] X + t) in sen
 _WORLD = ("the calibration target at the reference pose: x along the grid's columns, y "
           "along its rows (circle (row, col) at (col * pitch, row * pitch, 0)), z = x cross y "
           "toward the camera")
+
+
+_PHASE_MODEL = ("projector nonlinearity per fringe group: measured wrapped phase = phi + "
+                "sum_m cos_rad[m] cos(harmonics[m] phi) + sin_rad[m] sin(harmonics[m] phi), "
+                "phi the true wrapped phase of the group (rad)")
 
 
 # --------------------------------------------------------------------------- writing
@@ -122,13 +132,23 @@ def rig_to_json(calib: RigCalibration) -> dict:
                       "residual_px": [float(v) for v in o.residual]} for o in calib.outliers],
         "warnings": list(calib.warnings),
     }
-    return {"format": RIG_FORMAT, "version": RIG_VERSION,
-            "units": {"length": "mm", "image": "px", "angle": "rad"},
-            "model": _MODEL,
-            "world_frame": {"definition": _WORLD, "reference_pose": calib.reference_pose},
-            "camera": _device_json(calib.rig.camera),
-            "projector": _device_json(calib.rig.projector),
-            "calibration": report}
+    doc = {"format": RIG_FORMAT, "version": RIG_VERSION,
+           "units": {"length": "mm", "image": "px", "angle": "rad"},
+           "model": _MODEL,
+           "world_frame": {"definition": _WORLD, "reference_pose": calib.reference_pose},
+           "camera": _device_json(calib.rig.camera),
+           "projector": _device_json(calib.rig.projector),
+           "calibration": report}
+    models = getattr(calib, "phase_errors", None) or {}
+    if models:
+        doc["phase_errors"] = {
+            "model": _PHASE_MODEL,
+            "groups": [{"axis": axis, "periods": int(periods), "steps": int(steps),
+                        "harmonics": [int(h) for h in m.harmonics],
+                        "cos_rad": [float(v) for v in m.cos_coef],
+                        "sin_rad": [float(v) for v in m.sin_coef]}
+                       for (axis, periods, steps), m in sorted(models.items())]}
+    return doc
 
 
 def save_rig(path, calib: RigCalibration, *, force: bool = False) -> Path:
@@ -254,6 +274,7 @@ def rig_from_json(doc, *, where: str = "rig.json") -> RigCalibration:
     ref = world.get("reference_pose", "") if isinstance(world, dict) else ""
     if not isinstance(ref, str):
         r.fail("world_frame.reference_pose", f"must be a string, got {ref!r}")
+    phase_errors = _phase_errors(r, doc.get("phase_errors"))
     rep = doc.get("calibration")
     if rep is None:
         n = 22
@@ -268,7 +289,8 @@ def rig_from_json(doc, *, where: str = "rig.json") -> RigCalibration:
             rms_per_pose=np.zeros((0, 2)), outliers=(),
             camera_observations=np.zeros((0, 0, 2)),
             projector_observations=np.zeros((0, 0, 2)), principal_point="unknown",
-            principal_point_weak=(False, False), mirror="unknown", warnings=())
+            principal_point_weak=(False, False), mirror="unknown", warnings=(),
+            phase_errors=phase_errors)
     if not isinstance(rep, dict):
         r.fail("calibration", "must be an object")
     c = "calibration"
@@ -357,7 +379,47 @@ def rig_from_json(doc, *, where: str = "rig.json") -> RigCalibration:
         projector_observations=arrays["observations", "projector"],
         principal_point=str(rep.get("principal_point", "estimate")),
         principal_point_weak=(weak[0], weak[1]), mirror=str(rep.get("mirror", "unknown")),
-        warnings=tuple(warns))
+        warnings=tuple(warns), phase_errors=phase_errors)
+
+
+def _phase_errors(r: _Reader, doc) -> dict:
+    """The optional ``phase_errors`` block: ``(axis, periods, steps) -> PhaseErrorModel``."""
+    from ..gamma import PhaseErrorModel
+
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict) or not isinstance(doc.get("groups"), list):
+        r.fail("phase_errors", "must be an object with a list 'groups'")
+    out = {}
+    for i, g in enumerate(doc["groups"]):
+        path = f"phase_errors.groups[{i}]"
+        if not isinstance(g, dict):
+            r.fail(path, "must be an object")
+        axis = g.get("axis")
+        if axis not in ("u", "v"):
+            r.fail(f"{path}.axis", f"must be 'u' or 'v', got {axis!r}")
+        ints = {}
+        for key, low in (("periods", 1), ("steps", 3)):
+            v = g.get(key)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= low):
+                r.fail(f"{path}.{key}", f"must be an integer >= {low}, got {v!r}")
+            ints[key] = v
+        harm = g.get("harmonics")
+        if not (isinstance(harm, list) and all(isinstance(h, int) and not isinstance(h, bool)
+                                               and 1 <= h <= 4096 for h in harm)
+                and len(set(harm)) == len(harm)):
+            r.fail(f"{path}.harmonics", f"must be distinct integers in 1..4096, got {harm!r}")
+        coef = [r.array(g.get(k), f"{path}.{k}", (len(harm),)) for k in ("cos_rad", "sin_rad")]
+        if not all(np.all(np.isfinite(c)) for c in coef):
+            r.fail(path, "cos_rad and sin_rad must be finite numbers")
+        key = (axis, ints["periods"], ints["steps"])
+        if key in out:
+            r.fail(path, f"a second model for axis {axis}, {key[1]} periods, {key[2]} steps")
+        m = PhaseErrorModel(ints["periods"], tuple(harm), coef[0], coef[1])
+        if not m.invertible:
+            r.fail(path, "the model is not invertible (its slope reaches -1)")
+        out[key] = m
+    return out
 
 
 def _params_of(rig: Rig) -> np.ndarray:
