@@ -12,9 +12,11 @@ median of ``--runs`` runs after a warm-up:
   data-driven gamma correction), the per-rig set-up (once per rig and image size),
   triangulation, height map, writing the outputs;
 - megapixels (camera pixels) per second for triangulation alone and for decode +
-  triangulate from images in memory, with and without the gamma correction;
+  triangulate from images in memory: gamma correction learned from the scan, off, and
+  with the rig's model (learned once, as a calibration does; here from another scan);
 - the cold start of ``telefringe reconstruct`` for one scan (a new process, numba caches
-  warm), with and without the gamma correction, and its split by stage.
+  warm): gamma learned from the scan, off, and from a rig.json that carries the model;
+  and its split by stage.
 
 What bounds each figure:
 
@@ -60,10 +62,12 @@ def _load() -> str:
     return "load average " + ", ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
-def _write_rig(path: Path, rig) -> None:
-    """A hand-made rig.json of the true rig (no calibration report)."""
+def _write_rig(path: Path, rig, phase_errors=None) -> None:
+    """A hand-made rig.json of the true rig (no calibration report), with the projector's
+    nonlinearity models when given."""
     import json
 
+    from telefringe.io.rig import phase_errors_json
     from telefringe.model import rotvec_from_rotation
 
     def dev(d):
@@ -74,9 +78,11 @@ def _write_rig(path: Path, rig) -> None:
                 "rotation_vector": [float(v) for v in rotvec_from_rotation(d.R_dev_world)],
                 "t_mm": [float(v) for v in d.t_dev]}
 
-    path.write_text(json.dumps({"format": "telefringe-rig", "version": 1,
-                                "world_frame": {"reference_pose": "truth"},
-                                "camera": dev(rig.camera), "projector": dev(rig.projector)}))
+    doc = {"format": "telefringe-rig", "version": 1, "world_frame": {"reference_pose": "truth"},
+           "camera": dev(rig.camera), "projector": dev(rig.projector)}
+    if phase_errors:
+        doc["phase_errors"] = phase_errors_json(phase_errors)
+    path.write_text(json.dumps(doc))
 
 
 # The cold start split: what 'telefringe reconstruct' does, stage by stage, in a new process
@@ -97,12 +103,15 @@ mark("imports (cli, rig.json reader, decode, reconstruct)")
 from telefringe._distortion import undistort_point
 undistort_point(0.0, 0.0, 0.0, 0.0, 0.0)
 mark("numba start-up (one cached function)")
-rig = load_rig(sys.argv[1]).rig
+calib = load_rig(sys.argv[1])
+rig = calib.rig
 data = read_scan(sys.argv[2])
 mark("read rig.json + 12 PNGs")
-gamma = sys.argv[4] == "1"
-coords = decode(data, gamma_correction=gamma)
-mark("decode " + ("with" if gamma else "without") + " the gamma fit")
+mode = sys.argv[4]
+coords = decode(data, gamma_correction=mode != "off",
+                phase_errors=calib.phase_errors if mode == "rig" else None)
+mark({"off": "decode, no gamma correction", "fit": "decode, gamma learned from the scan",
+      "rig": "decode, the rig's gamma model"}[mode])
 cloud = triangulate(rig, coords)
 mark("triangulate (incl. per-rig set-up)")
 hm = height_map(cloud)
@@ -161,6 +170,11 @@ def main() -> None:
     folder = root / "scan"
     write_scan(folder, scan, force=True)
     _write_rig(root / "rig.json", vrig.rig)
+    # the nonlinearity learned once (as a calibration does), here from another scan
+    other, _ = render_scan(vrig, make_scene(args.scene), groups, white=False, black=False,
+                           seed=1)
+    learned = {("u", m.periods, 4): m for m in decode(other).axes["u"].phase_errors.models}
+    _write_rig(root / "rig_gamma.json", vrig.rig, learned)
     print(f"paper rig, scene {args.scene}: {n_img} images of {cols} x {rows} "
           f"({mpx:.2f} Mpx), {numba.get_num_threads()} threads, median of {args.runs} runs, "
           f"{os.cpu_count()} CPUs, {_load()}")
@@ -175,6 +189,7 @@ def main() -> None:
     t_dec, coords = _median_time(lambda: decode(data), args.runs)
     t_dec_ng, coords_ng = _median_time(lambda: decode(data, gamma_correction=False),
                                        args.runs)
+    t_dec_rig, _ = _median_time(lambda: decode(data, phase_errors=learned), args.runs)
     t_setup, _ = _median_time(lambda: Triangulator.for_shape(vrig.rig, (rows, cols)),
                               args.runs)
     runs_tri = max(args.runs, 9)
@@ -211,6 +226,7 @@ def main() -> None:
     line(f"read {n_img} PNG images", t_read)
     line("decode (gamma correction on, default)", t_dec)
     line("decode (gamma correction off)", t_dec_ng)
+    line("decode (the rig's gamma model, learned once)", t_dec_rig)
     line("per-rig set-up (Triangulator, once per rig)", t_setup)
     line("triangulate (set-up cached)", t_tri)
     line("triangulate, CPU time on 1 thread", t_cpu)
@@ -221,6 +237,7 @@ def main() -> None:
     line("triangulation alone", t_tri)
     line("decode + triangulate (gamma correction on)", t_dec + t_tri)
     line("decode + triangulate (gamma correction off)", t_dec_ng + t_tri)
+    line("decode + triangulate (the rig's gamma model)", t_dec_rig + t_tri)
     line("read + decode + triangulate (gamma on)", t_read + t_dec + t_tri)
     print(f"  valid points: {cloud.count} ({cloud.count / (rows * cols):.1%}), median sigma_z "
           f"{np.nanmedian(cloud.sigma_z) * 1000:.2f} um")
@@ -236,20 +253,24 @@ def main() -> None:
         exe = [sys.executable, "-m", "telefringe.cli"]
         cmd = exe + ["-q", "reconstruct", str(folder), "--rig", str(root / "rig.json"),
                      "-o", str(root / "out"), "--force"]
-        for label, extra in (("", []), (" --no-gamma-correction", ["--no-gamma-correction"])):
+        rig_gamma = [cmd[:cmd.index("--rig") + 1] + [str(root / "rig_gamma.json")]
+                     + cmd[cmd.index("--rig") + 2:]]
+        for label, full in (("", cmd), (" --no-gamma-correction",
+                                        cmd + ["--no-gamma-correction"]),
+                            (" (rig.json with the gamma model)", rig_gamma[0])):
             ts = []
             for _ in range(3):
                 t0 = time.perf_counter()
-                subprocess.run(cmd + extra, check=True)
+                subprocess.run(full, check=True)
                 ts.append(time.perf_counter() - t0)
             print(f"  telefringe reconstruct{label} (all outputs): "
                   f"{statistics.median(ts):.2f} s (runs: {', '.join(f'{t:.2f}' for t in ts)})")
-        for gamma in ("0", "1"):
-            print(f"  split ({'with' if gamma == '1' else 'without'} the gamma fit, one run, "
-                  f"{_load()}):")
+        for mode, rig_json in (("off", "rig.json"), ("fit", "rig.json"),
+                               ("rig", "rig_gamma.json")):
+            print(f"  split (gamma: {mode}, one run, {_load()}):")
             with tempfile.TemporaryDirectory() as d:
-                subprocess.run([sys.executable, "-c", _SPLIT, str(root / "rig.json"),
-                                str(folder), d, gamma], check=True)
+                subprocess.run([sys.executable, "-c", _SPLIT, str(root / rig_json),
+                                str(folder), d, mode], check=True)
     tmpdir.cleanup()
 
 

@@ -59,7 +59,8 @@ from ..model import Intrinsics, Rig, TelecentricDevice, rotation_from_rotvec, ro
 from .atomic import write_json_atomic
 from .errors import InputError
 
-__all__ = ["RIG_FORMAT", "RIG_VERSION", "save_rig", "load_rig", "rig_to_json", "rig_from_json"]
+__all__ = ["RIG_FORMAT", "RIG_VERSION", "save_rig", "load_rig", "rig_to_json", "rig_from_json",
+           "phase_errors_json"]
 
 RIG_FORMAT = "telefringe-rig"
 RIG_VERSION = 1
@@ -141,14 +142,19 @@ def rig_to_json(calib: RigCalibration) -> dict:
            "calibration": report}
     models = getattr(calib, "phase_errors", None) or {}
     if models:
-        doc["phase_errors"] = {
-            "model": _PHASE_MODEL,
+        doc["phase_errors"] = phase_errors_json(models)
+    return doc
+
+
+def phase_errors_json(models: dict) -> dict:
+    """The ``phase_errors`` block of rig.json for ``(axis, periods, steps) ->
+    PhaseErrorModel`` (see docs/formats.md)."""
+    return {"model": _PHASE_MODEL,
             "groups": [{"axis": axis, "periods": int(periods), "steps": int(steps),
                         "harmonics": [int(h) for h in m.harmonics],
                         "cos_rad": [float(v) for v in m.cos_coef],
                         "sin_rad": [float(v) for v in m.sin_coef]}
                        for (axis, periods, steps), m in sorted(models.items())]}
-    return doc
 
 
 def save_rig(path, calib: RigCalibration, *, force: bool = False) -> Path:
