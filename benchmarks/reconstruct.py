@@ -30,8 +30,8 @@ What bounds each figure:
   default, fitting and removing the projector's gamma from the fringes); triangulation is
   a few percent of it.
 - cold start: Python + numpy + typer/rich imports, numba's start-up and the loading of the
-  cached kernels, reading the PNGs, decoding, and matplotlib (import and drawing) for
-  heightmap.png; see the split.
+  cached kernels, reading the PNGs, decoding, and drawing heightmap.png (Pillow); see the
+  split.
 """
 
 from __future__ import annotations
@@ -124,8 +124,8 @@ export.write_ply(out + "/cloud.ply", cloud)
 mark("write cloud.ply")
 export.write_height_tiff(out + "/heightmap.tif", hm)
 mark("write heightmap.tif")
-import matplotlib.figure, matplotlib.backends.backend_agg
-mark("import matplotlib")
+import PIL.Image, PIL.ImageDraw
+mark("import Pillow")
 export.write_height_png(out + "/heightmap.png", _preview(hm))
 mark("draw + write heightmap.png")
 prev, cprev = t0, c0

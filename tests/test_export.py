@@ -197,3 +197,39 @@ def test_to_jsonable(tmp_path):
         "a": None, "b": [1, 2], "c": [1.0, None]}
     out = write_json(tmp_path / "r.json", {"fit": fit})
     assert json.loads(out.read_text())["fit"]["n_points"] == 50
+
+
+def test_height_preview_colours_follow_the_colour_bar(tmp_path):
+    """The map's pixels carry the colour of their height on the preview's own scale, the
+    colour bar runs from the top (high) to the bottom (low), no-data is grey, and drawing
+    does not import a plotting library (the reconstruct command's start-up)."""
+    import subprocess
+    import sys
+
+    import cv2
+
+    from telefringe.io.export import height_colours
+    from telefringe.reconstruct import HeightMap
+
+    z = np.tile(np.linspace(-1.0, 1.0, 200), (100, 1))  # rising left to right, mm
+    z[:10, :10] = np.nan
+    hm = HeightMap(z, 0.0, 10.0, 0.05)
+    p = write_height_png(tmp_path / "ramp.png", hm)
+    rgb = cv2.imread(str(p))[..., ::-1].astype(int)
+    lo, hi = np.percentile(z[np.isfinite(z)], [0.5, 99.5])
+    want = height_colours(z, lo, hi).astype(int)
+    # find the map in the image: the block of the no-data grey at its top-left corner
+    grey = np.all(rgb == (217, 217, 217), axis=2)
+    r0, c0 = (int(v.min()) for v in np.nonzero(grey))
+    scale = int(round(np.sqrt(grey.sum() / 100)))
+    got = rgb[r0:r0 + 100 * scale:scale, c0:c0 + 200 * scale:scale]
+    assert np.abs(got - want).max() <= 1
+    # ends of the colour map: viridis' dark violet at lo, yellow at hi
+    assert tuple(height_colours(np.array([lo - 1, hi + 1]), lo, hi)[0]) == (68, 1, 84)
+    assert tuple(height_colours(np.array([lo - 1, hi + 1]), lo, hi)[1]) == (253, 231, 37)
+    code = ("import sys, numpy as np\n"
+            "from telefringe.io.export import write_height_png\n"
+            "from telefringe.reconstruct import HeightMap\n"
+            f"write_height_png({str(tmp_path / 'x.png')!r}, HeightMap(np.zeros((4, 5)), 0, 0, 1))\n"
+            "assert 'matplotlib' not in sys.modules\n")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -119,9 +119,9 @@ def _prefetch(*modules: str):
     """Import ``modules`` in a background thread and return it.
 
     The command spends its first second reading PNGs (decompression runs without the
-    GIL) and loading compiled kernels; importing the writers' libraries (matplotlib, the
-    better part of a second) meanwhile, on the other core, takes them off the critical
-    path. A failed import is left for the real one to report.
+    GIL) and loading compiled kernels; importing the writers' libraries (PLY, TIFF, PNG)
+    meanwhile, on the other core, takes them off the critical path. A failed import is
+    left for the real one to report.
     """
     import importlib
     import threading
@@ -179,7 +179,7 @@ def reconstruct_cmd(
         raise InputError(f"--max-residual must be > 0, got {max_residual}")
     # third-party leaves only, which nothing else imports meanwhile (two threads importing
     # modules that import each other could see each other's half-initialised modules)
-    _prefetch("matplotlib.figure", "matplotlib.backends.backend_agg", "plyfile", "tifffile")
+    _prefetch("plyfile", "tifffile", "PIL.Image", "PIL.ImageDraw")
     from ..io.rig import load_rig
 
     rig_obj = load_rig(rig)
