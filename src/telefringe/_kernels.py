@@ -158,97 +158,58 @@ def series_correct32_array(s, c, ca, cb, c0, d, n, out):
 
 
 @nb.njit(inline="always")
-def _acc4_32(r0, r1, r2, r3, a0, a1, a2, a3, b0, b1, b2, b3, nj, s, c, top, first):
-    """Add 4 steps' weighted samples of columns j0..j0+nj to float32 sums s, c and the
-    running maximum ``top`` (input dtype); ``first`` starts them."""
-    if first:
-        for j in range(nj):
-            v0 = r0[j]
-            v1 = r1[j]
-            v2 = r2[j]
-            v3 = r3[j]
-            f0 = _F32(v0)
-            f1 = _F32(v1)
-            f2 = _F32(v2)
-            f3 = _F32(v3)
-            s[j] = (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
-            c[j] = (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
-            m01 = v0 if v0 > v1 else v1
-            m23 = v2 if v2 > v3 else v3
-            top[j] = m01 if m01 > m23 else m23
-    else:
-        for j in range(nj):
-            v0 = r0[j]
-            v1 = r1[j]
-            v2 = r2[j]
-            v3 = r3[j]
-            f0 = _F32(v0)
-            f1 = _F32(v1)
-            f2 = _F32(v2)
-            f3 = _F32(v3)
-            s[j] += (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
-            c[j] += (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
-            m01 = v0 if v0 > v1 else v1
-            m23 = v2 if v2 > v3 else v3
-            m = m01 if m01 > m23 else m23
-            t = top[j]
-            top[j] = m if m > t else t
+def _as32(v):
+    return _F32(v)
 
 
 @nb.njit(inline="always")
-def _acc4_64(r0, r1, r2, r3, a0, a1, a2, a3, b0, b1, b2, b3, nj, s, c, top, first):
-    """float64 :func:`_acc4_32` (any weights and samples)."""
-    if first:
-        for j in range(nj):
-            v0 = r0[j]
-            v1 = r1[j]
-            v2 = r2[j]
-            v3 = r3[j]
-            f0 = float(v0)
-            f1 = float(v1)
-            f2 = float(v2)
-            f3 = float(v3)
-            s[j] = (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
-            c[j] = (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
-            m01 = v0 if v0 > v1 else v1
-            m23 = v2 if v2 > v3 else v3
-            top[j] = m01 if m01 > m23 else m23
-    else:
-        for j in range(nj):
-            v0 = r0[j]
-            v1 = r1[j]
-            v2 = r2[j]
-            v3 = r3[j]
-            f0 = float(v0)
-            f1 = float(v1)
-            f2 = float(v2)
-            f3 = float(v3)
-            s[j] += (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
-            c[j] += (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
-            m01 = v0 if v0 > v1 else v1
-            m23 = v2 if v2 > v3 else v3
-            m = m01 if m01 > m23 else m23
-            t = top[j]
-            top[j] = m if m > t else t
+def _as64(v):
+    return float(v)
 
 
 @nb.njit(inline="always")
-def _acc_plain(row, a, b, nj, sa, sb, sn, first):
+def _zero(a, b, c, nj):
+    for j in range(nj):
+        a[j] = 0
+        b[j] = 0
+        c[j] = 0
+
+
+@nb.njit(inline="always")
+def _acc4(cast, r0, r1, r2, r3, a0, a1, a2, a3, b0, b1, b2, b3, nj, s, c, top):
+    """Add 4 steps' weighted samples of columns j0..j0+nj to the sums s, c and the running
+    maximum ``top`` (input dtype; started at 0, which only serves the saturation test
+    ``top < max_value``, max_value > 0, so negative samples change nothing). ``cast``
+    (:func:`_as32` or :func:`_as64`) gives the samples the sums' type: float32 where the
+    sums are exact (weights 0, +-1/2, +-1 and integer samples), else float64."""
+    for j in range(nj):
+        v0 = r0[j]
+        v1 = r1[j]
+        v2 = r2[j]
+        v3 = r3[j]
+        f0 = cast(v0)
+        f1 = cast(v1)
+        f2 = cast(v2)
+        f3 = cast(v3)
+        s[j] += (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
+        c[j] += (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
+        m01 = v0 if v0 > v1 else v1
+        m23 = v2 if v2 > v3 else v3
+        m = m01 if m01 > m23 else m23
+        t = top[j]
+        top[j] = m if m > t else t
+
+
+@nb.njit(inline="always")
+def _acc_plain(row, a, b, nj, sa, sb, sn):
     """sa += a v, sb += b v, sn += v over one image row (float32: the full decode's
     background, exact for integer samples below 2^16 and N <= 256, and second-harmonic
     sums, only used for the noise level)."""
-    if first:
-        for j in range(nj):
-            v = _F32(row[j])
-            sa[j] = a * v
-            sb[j] = b * v
-            sn[j] = v
-    else:
-        for j in range(nj):
-            v = _F32(row[j])
-            sa[j] += a * v
-            sb[j] += b * v
-            sn[j] += v
+    for j in range(nj):
+        v = _F32(row[j])
+        sa[j] += a * v
+        sb[j] += b * v
+        sn[j] += v
 
 
 @nb.njit(inline="always", error_model="numpy")
@@ -384,34 +345,36 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                         ts = s32 if first_mem else ms32
                         tc = c32 if first_mem else mc32
                         tt = top if first_mem else mtop
+                        if exact32[mem]:
+                            _zero(ts, tc, tt, nj)
+                        else:
+                            _zero(s64, c64, tt, nj)
                         for k in range(0, n_k, 4):
                             k1 = min(k + 1, n_k - 1)
                             k2 = min(k + 2, n_k - 1)
                             k3 = min(k + 3, n_k - 1)
                             if exact32[mem]:
-                                _acc4_32(st[k, r, j0:j1], st[k1, r, j0:j1], st[k2, r, j0:j1],
-                                         st[k3, r, j0:j1],
-                                         sw32[mem, k], sw32[mem, k + 1], sw32[mem, k + 2],
-                                         sw32[mem, k + 3], cw32[mem, k], cw32[mem, k + 1],
-                                         cw32[mem, k + 2], cw32[mem, k + 3], nj, ts, tc,
-                                         tt, k == 0)
+                                _acc4(_as32, st[k, r, j0:j1], st[k1, r, j0:j1],
+                                      st[k2, r, j0:j1], st[k3, r, j0:j1],
+                                      sw32[mem, k], sw32[mem, k + 1], sw32[mem, k + 2],
+                                      sw32[mem, k + 3], cw32[mem, k], cw32[mem, k + 1],
+                                      cw32[mem, k + 2], cw32[mem, k + 3], nj, ts, tc, tt)
                             else:
-                                _acc4_64(st[k, r, j0:j1], st[k1, r, j0:j1], st[k2, r, j0:j1],
-                                         st[k3, r, j0:j1],
-                                         sw[mem, k], sw[mem, k + 1], sw[mem, k + 2],
-                                         sw[mem, k + 3], cw[mem, k], cw[mem, k + 1],
-                                         cw[mem, k + 2], cw[mem, k + 3], nj, s64, c64,
-                                         tt, k == 0)
+                                _acc4(_as64, st[k, r, j0:j1], st[k1, r, j0:j1],
+                                      st[k2, r, j0:j1], st[k3, r, j0:j1],
+                                      sw[mem, k], sw[mem, k + 1], sw[mem, k + 2],
+                                      sw[mem, k + 3], cw[mem, k], cw[mem, k + 1],
+                                      cw[mem, k + 2], cw[mem, k + 3], nj, s64, c64, tt)
                         if not exact32[mem]:
                             _to32(s64, c64, ts, tc, nj)
                         if full:
                             ta = sa if first_mem else msa
                             t2s = s2 if first_mem else ms2
                             t2c = c2 if first_mem else mc2
+                            _zero(t2s, t2c, ta, nj)
                             for k in range(n_k):
                                 _acc_plain(st[k, r, j0:j1], _F32(s2w[mem, k]),
-                                           _F32(c2w[mem, k]), nj, t2s,
-                                           t2c, ta, k == 0)
+                                           _F32(c2w[mem, k]), nj, t2s, t2c, ta)
                         e = exposure[mem]
                         if first_mem:
                             for j in range(nj):
