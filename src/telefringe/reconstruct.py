@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from ._distortion import undistort_point
+from ._distortion import distortion_residual, undistort_point
 from .model import Rig, TelecentricDevice, undistort_sensor
 
 __all__ = [
@@ -417,6 +417,15 @@ _CHUNK = 16384
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def _axis_cubic(A, B, q0, q1, q2, k1, s):  # pragma: no cover - numba
+    """Coefficients (c0, c1, c2, c3) in s of one distorted sensor coordinate along the
+    line A + B s (the other coordinate's A', B' enter through q0 = A^2 + A'^2, q1 =
+    2 (A B + A' B'), q2 = B^2 + B'^2); k1 radial, s the axis' thin-prism term."""
+    return (A + (k1 * A + s) * q0, B + k1 * (A * q1 + B * q0) + s * q1,
+            k1 * (A * q2 + B * q1) + s * q2, k1 * B * q2)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _line_cubics(ai, bi, kp):  # pragma: no cover - numba
     k1 = kp[4]
     s1 = kp[5]
@@ -428,14 +437,8 @@ def _line_cubics(ai, bi, kp):  # pragma: no cover - numba
     q2 = Bu * Bu + Bv * Bv
     q0 = Au * Au + Av * Av
     q1 = 2.0 * (Au * Bu + Av * Bv)
-    cu0 = Au + (k1 * Au + s1) * q0
-    cu1 = Bu + k1 * (Au * q1 + Bu * q0) + s1 * q1
-    cu2 = k1 * (Au * q2 + Bu * q1) + s1 * q2
-    cu3 = k1 * Bu * q2
-    cv0 = Av + (k1 * Av + s2) * q0
-    cv1 = Bv + k1 * (Av * q1 + Bv * q0) + s2 * q1
-    cv2 = k1 * (Av * q2 + Bv * q1) + s2 * q2
-    cv3 = k1 * Bv * q2
+    cu0, cu1, cu2, cu3 = _axis_cubic(Au, Bu, q0, q1, q2, k1, s1)
+    cv0, cv1, cv2, cv3 = _axis_cubic(Av, Bv, q0, q1, q2, k1, s2)
     return cu0, cu1, cu2, cu3, cv0, cv1, cv2, cv3, Au, Av
 
 
@@ -628,10 +631,7 @@ def _solve_u_block(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
         Av = pv_a * ai + pv_b * bi + tv
         q0 = Au * Au + Av * Av
         q1 = 2.0 * (Au * Bu + Av * Bv)
-        cu0 = Au + (k1 * Au + s1) * q0
-        cu1 = Bu + k1 * (Au * q1 + Bu * q0) + s1 * q1
-        cu2 = k1 * (Au * q2 + Bu * q1) + s1 * q2
-        cu3 = k1 * Bu * q2
+        cu0, cu1, cu2, cu3 = _axis_cubic(Au, Bu, q0, q1, q2, k1, s1)
         t = (u_obs - u0) * du - cu0
         r1 = 1.0 / cu1
         s = t * r1
@@ -796,23 +796,12 @@ def _grid_lines_kernel(u0, v0, du, dv, k1, s1, s2, m, t0, t1, a,
             xu = xd - (k1 * xd + s1) * r2
             yu = yd - (k1 * yd + s2) * r2
             for _ in range(_N_UNDISTORT):
-                r2 = xu * xu + yu * yu
-                fx = xu + k1 * xu * r2 + s1 * r2 - xd
-                fy = yu + k1 * yu * r2 + s2 * r2 - yd
-                ja = 1.0 + k1 * (r2 + 2.0 * xu * xu) + 2.0 * s1 * xu
-                jb = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
-                jc = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
-                jd = 1.0 + k1 * (r2 + 2.0 * yu * yu) + 2.0 * s2 * yu
+                fx, fy, ja, jb, jc, jd = distortion_residual(xu, yu, xd, yd, k1, s1, s2)
                 idet = 1.0 / (ja * jd - jb * jc)
                 xu = xu - (jd * fx - jb * fy) * idet
                 yu = yu - (ja * fy - jc * fx) * idet
-            r2 = xu * xu + yu * yu
-            res = (abs(xu + k1 * xu * r2 + s1 * r2 - xd)
-                   + abs(yu + k1 * yu * r2 + s2 * r2 - yd))
-            ja = 1.0 + k1 * (r2 + 2.0 * xu * xu) + 2.0 * s1 * xu
-            jb = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
-            jc = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
-            jd = 1.0 + k1 * (r2 + 2.0 * yu * yu) + 2.0 * s2 * yu
+            fx, fy, ja, jb, jc, jd = distortion_residual(xu, yu, xd, yd, k1, s1, s2)
+            res = abs(fx) + abs(fy)
             thresh = max(1e-12, 64.0 * 2.220446049250313e-16 * (abs(xd) + abs(yd)))
             good = (res <= thresh) & (ja * jd - jb * jc > 0.0) & (ja + jd > 0.0)
             redo += not good
