@@ -233,3 +233,15 @@ def test_height_preview_colours_follow_the_colour_bar(tmp_path):
             f"write_height_png({str(tmp_path / 'x.png')!r}, HeightMap(np.zeros((4, 5)), 0, 0, 1))\n"
             "assert 'matplotlib' not in sys.modules\n")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_preview_tick_labels_are_round_and_never_minus_zero():
+    from telefringe.io.export import _label, _ticks
+
+    t = _ticks(-6.5, 37.2, 6)
+    assert [_label(v, t[1] - t[0]) for v in t] == ["0", "10", "20", "30"]
+    t = _ticks(-0.012, 0.334, 6)
+    assert [_label(v, t[1] - t[0]) for v in t] == ["0.0", "0.1", "0.2", "0.3"]
+    t = _ticks(0.0, 0.25, 6)  # step 0.05: two decimals
+    assert [_label(v, t[1] - t[0]) for v in t] == ["0.00", "0.05", "0.10", "0.15", "0.20",
+                                                   "0.25"]

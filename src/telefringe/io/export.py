@@ -366,6 +366,8 @@ def _ticks(lo: float, hi: float, n: int = 6) -> np.ndarray:
 
 
 def _label(v: float, step: float) -> str:
+    if abs(v) < 1e-9 * max(step, 1e-300):  # no "-0" for a tick at zero
+        v = 0.0
     digits = max(0, int(-np.floor(np.log10(step))) + (1 if step / 10 ** np.floor(
         np.log10(step)) == 2.5 else 0)) if step > 0 else 3
     return f"{v:.{digits}f}"
