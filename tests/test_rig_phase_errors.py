@@ -117,3 +117,26 @@ def _device():
             "principal_point_px": [160.0, 128.0], "distortion": {"k1": 0.0, "s1": 0.0,
                                                                  "s2": 0.0},
             "rotation_vector": [3.14159, 0.0, 0.0], "t_mm": [0.0, 0.0]}
+
+
+def test_decode_command_uses_a_rigs_model(calib, fast_rig, tmp_path, capsys):
+    from telefringe.cli import main
+    from telefringe.io.rig import save_rig
+    from telefringe.io.scan import write_scan
+
+    scan, _ = render_scan(fast_rig, plate_at_z(0.2), default_groups(fast_rig), seed=9)
+    write_scan(tmp_path / "scan", scan)
+    save_rig(tmp_path / "rig.json", calib)
+    capsys.readouterr()
+    assert main(["-v", "decode", str(tmp_path / "scan"), "-o", str(tmp_path / "c.npz"),
+                 "--rig", str(tmp_path / "rig.json")]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "the rig's model" in out and "learned from the scan" not in out
+    # a rig.json without the model: said, and learned from the scan
+    doc = json.loads((tmp_path / "rig.json").read_text())
+    del doc["phase_errors"]
+    (tmp_path / "bare.json").write_text(json.dumps(doc))
+    assert main(["-v", "decode", str(tmp_path / "scan"), "-o", str(tmp_path / "d.npz"),
+                 "--rig", str(tmp_path / "bare.json")]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "holds no projector nonlinearity" in out and "learned from the scan" in out

@@ -43,6 +43,11 @@ def decode_cmd(
     gamma: bool = typer.Option(True, "--gamma-correction/--no-gamma-correction",
                                help="Learn and remove the projector nonlinearity from the "
                                     "fringe ladder."),
+    rig: Path = typer.Option(None, "--rig",
+                             help="A rig.json whose projector nonlinearity (learned at "
+                                  "calibration) removes the scan's instead of learning it "
+                                  "from the scan (axes without a model for every group are "
+                                  "still learned)."),
     min_modulation: float = typer.Option(None, "--min-modulation",
                                          help="Modulation threshold in DN (default 2% of "
                                               "the sensor maximum)."),
@@ -50,7 +55,7 @@ def decode_cmd(
     """Decode a scan into projector coordinates per camera pixel (u_p, v_p, mask,
     modulation, sigma_u_p, sigma_v_p in an .npz).
 
-    Example: telefringe decode scans/part -o part_coords.npz
+    Example: telefringe decode scans/part -o part_coords.npz --rig rig.json
     """
     from ..decode import DecodeError, decode
     from ..io.atomic import check_can_write
@@ -60,6 +65,14 @@ def decode_cmd(
     from ..phase import PhaseInputError
 
     check_can_write(output, force=force)
+    phase_errors = None
+    if rig is not None:
+        from ..io.rig import load_rig
+
+        phase_errors = load_rig(rig).phase_errors
+        if not phase_errors:
+            info(f"[yellow]warning:[/yellow] {rig} holds no projector nonlinearity: it is "
+                 "learned from the scan")
     man = load_scan_manifest(scan)
     n = sum(len(g.images) for g in man.groups) + bool(man.white) + bool(man.black)
     with progress_bar("reading images", n) as advance:
@@ -72,7 +85,7 @@ def decode_cmd(
         data = read_scan(scan, progress=tick)
     try:
         coords = decode(data, method=method, gamma_correction=gamma,
-                        min_modulation=min_modulation)
+                        min_modulation=min_modulation, phase_errors=phase_errors)
     except (DecodeError, PhaseInputError) as exc:
         msg = str(exc)
         if msg.startswith(f"{data.source}: "):
@@ -98,7 +111,9 @@ def decode_cmd(
                    f"median sigma {float(np.median(r.sigma[good])):.4f} projector px")
             if r.phase_errors is not None and any(m.harmonics for m in r.phase_errors.models):
                 peaks = ", ".join(f"{m.periods}: {m.peak:.4f}" for m in r.phase_errors.models)
-                detail(f"  nonlinearity phase error removed (peak rad per group) {peaks}")
+                src = "learned from the scan" if r.phase_errors.n_samples else "the rig's model"
+                detail(f"  nonlinearity phase error removed ({src}; peak rad per group) "
+                       f"{peaks}")
     info(f"wrote {output}")
 
 
