@@ -140,3 +140,11 @@ def test_decode_command_uses_a_rigs_model(calib, fast_rig, tmp_path, capsys):
                  "--rig", str(tmp_path / "bare.json")]) == 0
     out = " ".join(capsys.readouterr().out.split())
     assert "holds no projector nonlinearity" in out and "learned from the scan" in out
+    # the rig of another projector: refused, nothing written
+    doc["projector"]["width"] = 2 * doc["projector"]["width"]
+    (tmp_path / "other.json").write_text(json.dumps(doc))
+    assert main(["decode", str(tmp_path / "scan"), "-o", str(tmp_path / "e.npz"),
+                 "--rig", str(tmp_path / "other.json")]) == 2
+    assert "use the rig.json of the rig that took this scan" in " ".join(
+        capsys.readouterr().err.split())
+    assert not (tmp_path / "e.npz").exists()

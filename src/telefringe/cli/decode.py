@@ -66,14 +66,21 @@ def decode_cmd(
 
     check_can_write(output, force=force)
     phase_errors = None
+    man = load_scan_manifest(scan)
     if rig is not None:
         from ..io.rig import load_rig
 
-        phase_errors = load_rig(rig).phase_errors
+        calib = load_rig(rig)
+        kp = calib.rig.projector.intrinsics
+        if (kp.width, kp.height) != (man.projector_width, man.projector_height):
+            raise InputError(f"{rig}: its projector is {kp.width} x {kp.height} but the scan's "
+                             f"patterns are for {man.projector_width} x "
+                             f"{man.projector_height}: use the rig.json of the rig that took "
+                             "this scan")
+        phase_errors = calib.phase_errors
         if not phase_errors:
             info(f"[yellow]warning:[/yellow] {rig} holds no projector nonlinearity: it is "
                  "learned from the scan")
-    man = load_scan_manifest(scan)
     n = sum(len(g.images) for g in man.groups) + bool(man.white) + bool(man.black)
     with progress_bar("reading images", n) as advance:
         done = [0]
