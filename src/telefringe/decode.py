@@ -428,9 +428,6 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
     used, unw = None, None
     if given is not None:  # learned beforehand (e.g. by the calibration)
         fit = given
-        sigmas = [s * np.abs(m.noise_factor(p))
-                  for m, p, s in zip(fit.models, phases, sigmas, strict=True)]
-        phases = [m.correct(p) for m, p in zip(fit.models, phases, strict=True)]
     elif gamma_correction and len(levels) >= 2 and good.any():
         per = [lv.periods for lv in levels]
         ratios_integer = all(b % a == 0 for a, b in zip(sorted(per)[:-1], sorted(per)[1:],
@@ -446,14 +443,15 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
             learn = good
         fit = fit_phase_errors(phases, per, steps=[lv.steps for lv in levels], mask=learn,
                                sigmas=sigmas, absolute=absolute)
+    elif len(levels) >= 2 or gamma_correction:
+        fit = PhaseErrorFit(tuple(PhaseErrorModel.zero(lv.periods) for lv in levels), 0.0, 0)
+    if fusable:  # the correction is learned: the final pass in the fused kernel applies it
+        return _decode_axis_fused(scan, axis, sets, length=length, noise=noise,
+                                  min_mod=min_mod, max_residual=max_residual, fit=fit)
+    if fit is not None and any(m.harmonics for m in fit.models):
         sigmas = [s * np.abs(m.noise_factor(p))
                   for m, p, s in zip(fit.models, phases, sigmas, strict=True)]
         phases = [m.correct(p) for m, p in zip(fit.models, phases, strict=True)]
-    elif len(levels) >= 2 or gamma_correction:
-        fit = PhaseErrorFit(tuple(PhaseErrorModel.zero(lv.periods) for lv in levels), 0.0, 0)
-    if fusable:  # the correction is learned: the final pass in the fused kernel
-        return _decode_axis_fused(scan, axis, sets, length=length, noise=noise,
-                                  min_mod=min_mod, max_residual=max_residual, fit=fit)
     used, unw = run(phases)
 
     # inverse-variance combination of the unwrapped groups (projector pixels)
