@@ -177,3 +177,31 @@ def test_low_modulation_and_shadow_are_invalid():
     pc = decode(scan, noise=noise())
     assert not pc.mask.any()
     assert np.all(np.isnan(pc.u_p)) and np.all(np.isnan(pc.sigma_u_p))
+
+
+@pytest.mark.parametrize("exposures", [(1.0,), (1.0, 0.3)], ids=["single", "hdr"])
+def test_nonlinearity_learned_from_sampled_pixels_equals_the_full_image_fit(monkeypatch,
+                                                                           exposures):
+    """The fused path computes the wrapped phases only at the pixels the fit uses; the
+    models and coordinates must be exactly those of computing them over the whole image."""
+    import telefringe.decode as dec
+    from telefringe.simulate.presets import get_preset
+    from telefringe.simulate.render import default_groups, render_scan
+    from telefringe.simulate.scenes import plate_at_z
+
+    vrig = get_preset("fast")
+    scan, _ = render_scan(vrig, plate_at_z(0.2), default_groups(vrig, steps=3),
+                          exposures=exposures, seed=11)
+    monkeypatch.setattr(dec, "_FIT_SAMPLES", 20_000)  # fewer than the good pixels
+    sampled = decode(scan)
+    monkeypatch.setattr(dec, "_fit_from_samples", lambda *a, **k: None)
+    full = decode(scan)
+    for ax in ("u", "v"):
+        a, b = sampled.axes[ax], full.axes[ax]
+        assert any(m.harmonics for m in a.phase_errors.models)  # 3 steps at gamma 2.2
+        for ma, mb in zip(a.phase_errors.models, b.phase_errors.models, strict=True):
+            assert ma.harmonics == mb.harmonics
+            assert np.array_equal(ma.cos_coef, mb.cos_coef)
+            assert np.array_equal(ma.sin_coef, mb.sin_coef)
+        assert np.array_equal(a.valid, b.valid)
+        assert np.array_equal(a.coordinate, b.coordinate, equal_nan=True)

@@ -39,7 +39,7 @@ from .phase import (
     saturation_mask,
     wrapped_phase,
 )
-from .scan import GrayGroup, PhaseGroup, Scan
+from .scan import GrayGroup, PhaseGroup, Scan, ScanManifest
 from .unwrap import (
     LadderError,
     Unwrapped,
@@ -319,6 +319,46 @@ def _given_fit(phase_errors, axis: str, sets) -> PhaseErrorFit | None:
     return PhaseErrorFit(tuple(models), float("nan"), 0)
 
 
+#: pixels the nonlinearity is learned from at most (a regular subsample of the good ones)
+_FIT_SAMPLES = 100_000
+
+
+def _fit_from_samples(scan: Scan, axis: str, sets, *, length: int, noise: NoiseModel,
+                      min_mod: float, max_residual: float) -> PhaseErrorFit | None:
+    """The nonlinearity learned as :func:`decode_axis`'s exact path learns it (same pixels,
+    same wrapped phases and weights), with the wrapped phases computed at the sampled
+    pixels only: the good-pixel mask comes from a first pass of the fused kernel, whose
+    masks equal the exact path's (tested). None when the ladder's ratios are not all
+    integers (the exact path then needs a first unwrapping of every pixel)."""
+    per = list(sets)
+    if not all(b % a == 0 for a, b in zip(per[:-1], per[1:], strict=True)):
+        return None
+    first = _decode_axis_fused(scan, axis, sets, length=length, noise=noise, min_mod=min_mod,
+                               max_residual=max_residual, fit=None)
+    idx = np.flatnonzero((~first.saturated & ~first.low_modulation).ravel())
+    if idx.size == 0:
+        return PhaseErrorFit(tuple(PhaseErrorModel.zero(p) for p in per), 0.0, 0)
+    if idx.size > _FIT_SAMPLES:  # the subsample fit_phase_errors itself would take
+        idx = idx[np.linspace(0, idx.size - 1, _FIT_SAMPLES).astype(np.int64)]
+    groups, stacks = [], []
+    for p in per:
+        for g, st in sets[p]:
+            groups.append(g)
+            stacks.append(st.reshape(st.shape[0], -1)[:, idx][:, None, :])
+    sub = Scan(ScanManifest(scan.manifest.projector_width, scan.manifest.projector_height,
+                            tuple(groups)), tuple(stacks), max_value=scan.max_value,
+               source=scan.source)
+    levels = _levels(sub, axis)
+    good = np.ones((1, idx.size), dtype=bool)
+    for lv in levels:
+        good &= ~lv.saturated & (lv.wrapped.modulation >= min_mod)
+    sigmas = [phase_sigma(lv.wrapped.modulation, lv.wrapped.quadrature, steps=lv.steps,
+                          noise=noise) for lv in levels]
+    return fit_phase_errors([lv.wrapped.phase for lv in levels], per,
+                            steps=[lv.steps for lv in levels], mask=good, sigmas=sigmas,
+                            max_samples=_FIT_SAMPLES)
+
+
 def _decode_axis_fused(scan: Scan, axis: str, sets, *, length: int, noise: NoiseModel,
                        min_mod: float, max_residual: float, fit) -> AxisCoordinates:
     """:func:`decode_axis` for a hierarchical ladder (HDR sets allowed) in one pass of the
@@ -382,6 +422,12 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
             fit = PhaseErrorFit(tuple(PhaseErrorModel.zero(p) for p in sets), 0.0, 0)
         return _decode_axis_fused(scan, axis, sets, length=length, noise=noise,
                                   min_mod=min_mod, max_residual=max_residual, fit=fit)
+    if fusable and given is None:  # learned from the sampled pixels only
+        fit = _fit_from_samples(scan, axis, sets, length=length, noise=noise, min_mod=min_mod,
+                                max_residual=max_residual)
+        if fit is not None:
+            return _decode_axis_fused(scan, axis, sets, length=length, noise=noise,
+                                      min_mod=min_mod, max_residual=max_residual, fit=fit)
     levels = _levels(scan, axis)
 
     shape = levels[0].wrapped.phase.shape
@@ -442,7 +488,7 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
         else:
             learn = good
         fit = fit_phase_errors(phases, per, steps=[lv.steps for lv in levels], mask=learn,
-                               sigmas=sigmas, absolute=absolute)
+                               sigmas=sigmas, absolute=absolute, max_samples=_FIT_SAMPLES)
     elif len(levels) >= 2 or gamma_correction:
         fit = PhaseErrorFit(tuple(PhaseErrorModel.zero(lv.periods) for lv in levels), 0.0, 0)
     if fusable:  # the correction is learned: the final pass in the fused kernel applies it
