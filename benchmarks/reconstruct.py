@@ -63,26 +63,14 @@ def _load() -> str:
 
 
 def _write_rig(path: Path, rig, phase_errors=None) -> None:
-    """A hand-made rig.json of the true rig (no calibration report), with the projector's
+    """A rig.json of the true rig (no calibration report), with the projector's
     nonlinearity models when given."""
     import json
 
-    from telefringe.io.rig import phase_errors_json
-    from telefringe.model import rotvec_from_rotation
+    from telefringe.io.rig import bare_rig_json
 
-    def dev(d):
-        k = d.intrinsics
-        return {"width": k.width, "height": k.height, "pixel_size_mm": [k.du, k.dv],
-                "m": k.m, "principal_point_px": [k.u0, k.v0],
-                "distortion": {"k1": k.k1, "s1": k.s1, "s2": k.s2},
-                "rotation_vector": [float(v) for v in rotvec_from_rotation(d.R_dev_world)],
-                "t_mm": [float(v) for v in d.t_dev]}
-
-    doc = {"format": "telefringe-rig", "version": 1, "world_frame": {"reference_pose": "truth"},
-           "camera": dev(rig.camera), "projector": dev(rig.projector)}
-    if phase_errors:
-        doc["phase_errors"] = phase_errors_json(phase_errors)
-    path.write_text(json.dumps(doc))
+    path.write_text(json.dumps(bare_rig_json(rig, reference_pose="truth",
+                                             phase_errors=phase_errors)))
 
 
 # The cold start split: what 'telefringe reconstruct' does, stage by stage, in a new process

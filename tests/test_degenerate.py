@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 sim = pytest.importorskip("telefringe.simulate.render")
+from telefringe.io.rig import bare_rig_json  # noqa: E402
 from telefringe.io.scan import write_scan  # noqa: E402
-from telefringe.model import rotvec_from_rotation  # noqa: E402
 from telefringe.simulate.presets import get_preset  # noqa: E402
 from telefringe.simulate.scenes import plate_at_z  # noqa: E402
 
@@ -40,16 +40,6 @@ def _map_images(scan, f):
                    black=None if scan.black is None else f(scan.black))
 
 
-def _device_json(dev) -> dict:
-    k = dev.intrinsics
-    return {"width": int(k.width), "height": int(k.height),
-            "pixel_size_mm": [float(k.du), float(k.dv)], "m": float(k.m),
-            "principal_point_px": [float(k.u0), float(k.v0)],
-            "distortion": {"k1": float(k.k1), "s1": float(k.s1), "s2": float(k.s2)},
-            "rotation_vector": [float(v) for v in rotvec_from_rotation(dev.R_dev_world)],
-            "t_mm": [float(v) for v in dev.t_dev]}
-
-
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
     """A folder with a plate scan of the fast rig (``scan``) and that rig's true devices
@@ -59,10 +49,8 @@ def work(tmp_path_factory):
     vr = get_preset("fast")
     scan, _ = sim.render_scan(vr, plate_at_z(0.0), sim.default_groups(vr), seed=6)
     write_scan(tmp / "scan", scan)
-    doc = {"format": "telefringe-rig", "version": 1,
-           "world_frame": {"reference_pose": "pose_00"},
-           "camera": _device_json(vr.camera), "projector": _device_json(vr.projector)}
-    (tmp / "rig.json").write_text(json.dumps(doc, indent=1))
+    (tmp / "rig.json").write_text(json.dumps(bare_rig_json(vr.rig, reference_pose="pose_00"),
+                                             indent=1))
     return tmp, scan, vr
 
 

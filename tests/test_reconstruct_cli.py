@@ -98,21 +98,10 @@ def test_height_map_of_the_plate(plate_out):
 
 
 def write_rig_json(path, rig):
-    """A hand-made rig.json (no calibration report) of a Rig."""
-    from telefringe.model import rotvec_from_rotation
+    """A rig.json of a Rig without a calibration report."""
+    from telefringe.io.rig import bare_rig_json
 
-    def dev(d):
-        k = d.intrinsics
-        return {"width": k.width, "height": k.height, "pixel_size_mm": [k.du, k.dv],
-                "m": k.m, "principal_point_px": [k.u0, k.v0],
-                "distortion": {"k1": k.k1, "s1": k.s1, "s2": k.s2},
-                "rotation_vector": [float(v) for v in rotvec_from_rotation(d.R_dev_world)],
-                "t_mm": [float(v) for v in d.t_dev]}
-
-    doc = {"format": "telefringe-rig", "version": 1,
-           "world_frame": {"reference_pose": "truth"},
-           "camera": dev(rig.camera), "projector": dev(rig.projector)}
-    path.write_text(json.dumps(doc))
+    path.write_text(json.dumps(bare_rig_json(rig, reference_pose="truth")))
     return path
 
 

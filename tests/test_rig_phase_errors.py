@@ -148,3 +148,23 @@ def test_decode_command_uses_a_rigs_model(calib, fast_rig, tmp_path, capsys):
     assert "use the rig.json of the rig that took this scan" in " ".join(
         capsys.readouterr().err.split())
     assert not (tmp_path / "e.npz").exists()
+
+
+def test_reconstruct_command_uses_a_rigs_model_unless_told_to_refit(calib, fast_rig,
+                                                                     tmp_path, capsys):
+    from telefringe.cli import main
+    from telefringe.io.rig import save_rig
+    from telefringe.io.scan import write_scan
+
+    scan, _ = render_scan(fast_rig, plate_at_z(0.2), default_groups(fast_rig), seed=10)
+    write_scan(tmp_path / "scan", scan)
+    save_rig(tmp_path / "rig.json", calib)
+    base = ["-v", "reconstruct", str(tmp_path / "scan"), "--rig", str(tmp_path / "rig.json"),
+            "--no-ply"]
+    capsys.readouterr()
+    assert main([*base, "-o", str(tmp_path / "a")]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "the rig's model" in out and "learned from the scan" not in out
+    assert main([*base, "-o", str(tmp_path / "b"), "--refit-gamma"]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "learned from the scan" in out and "the rig's model" not in out

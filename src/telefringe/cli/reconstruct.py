@@ -12,7 +12,8 @@ from ._common import detail, info, progress_bar
 def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
                           pixel_mm: float | None = None, max_residual: float | None = 1.0,
                           ply: bool = True, title: str | None = None, **decode_options):
-    """Read a scan folder, reconstruct it with ``rig`` (a Rig) and write ``output``.
+    """Read a scan folder, reconstruct it with ``rig`` (a Rig, or a RigCalibration whose
+    projector nonlinearity is then used) and write ``output``.
 
     Writes atomically (the folder appears complete or not at all): ``points.npz``,
     ``cloud.ply``, ``heightmap.tif`` + ``heightmap.json`` (+ ``heightmap_sigma.tif``),
@@ -41,11 +42,8 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
 
     output = Path(output)
     check_can_write(output, force=force)
-    # the projector nonlinearity learned at calibration, unless the caller chose
-    learned = getattr(rig, "phase_errors", None)
-    if learned and "phase_errors" not in decode_options:
-        decode_options = {**decode_options, "phase_errors": learned}
-    rig = getattr(rig, "rig", rig)  # load_rig gives a RigCalibration holding the Rig
+    # (a RigCalibration from load_rig stands for its Rig, and reconstruct_scan takes the
+    # projector nonlinearity it learned)
     man = load_scan_manifest(scan_dir)
     kp = rig.projector.intrinsics
     if kp.width and kp.height and (man.projector_width, man.projector_height) != (

@@ -60,7 +60,7 @@ from .atomic import write_json_atomic
 from .errors import InputError
 
 __all__ = ["RIG_FORMAT", "RIG_VERSION", "save_rig", "load_rig", "rig_to_json", "rig_from_json",
-           "phase_errors_json"]
+           "bare_rig_json"]
 
 RIG_FORMAT = "telefringe-rig"
 RIG_VERSION = 1
@@ -133,20 +133,29 @@ def rig_to_json(calib: RigCalibration) -> dict:
                       "residual_px": [float(v) for v in o.residual]} for o in calib.outliers],
         "warnings": list(calib.warnings),
     }
-    doc = {"format": RIG_FORMAT, "version": RIG_VERSION,
-           "units": {"length": "mm", "image": "px", "angle": "rad"},
-           "model": _MODEL,
-           "world_frame": {"definition": _WORLD, "reference_pose": calib.reference_pose},
-           "camera": _device_json(calib.rig.camera),
-           "projector": _device_json(calib.rig.projector),
-           "calibration": report}
-    models = getattr(calib, "phase_errors", None) or {}
-    if models:
-        doc["phase_errors"] = phase_errors_json(models)
+    doc = bare_rig_json(calib.rig, reference_pose=calib.reference_pose,
+                        phase_errors=getattr(calib, "phase_errors", None))
+    doc["calibration"] = report
     return doc
 
 
-def phase_errors_json(models: dict) -> dict:
+def bare_rig_json(rig: Rig, *, reference_pose: str = "", phase_errors: dict | None = None
+                  ) -> dict:
+    """A ``rig.json`` document (a dict) of both devices without a calibration report (the
+    format allows leaving it out: a rig known otherwise, e.g. a simulation's truth), with
+    the projector's nonlinearity models ``(axis, periods, steps) -> PhaseErrorModel``
+    when given."""
+    doc = {"format": RIG_FORMAT, "version": RIG_VERSION,
+           "units": {"length": "mm", "image": "px", "angle": "rad"},
+           "model": _MODEL,
+           "world_frame": {"definition": _WORLD, "reference_pose": reference_pose},
+           "camera": _device_json(rig.camera), "projector": _device_json(rig.projector)}
+    if phase_errors:
+        doc["phase_errors"] = _phase_errors_json(phase_errors)
+    return doc
+
+
+def _phase_errors_json(models: dict) -> dict:
     """The ``phase_errors`` block of rig.json for ``(axis, periods, steps) ->
     PhaseErrorModel`` (see docs/formats.md)."""
     return {"model": _PHASE_MODEL,
