@@ -16,11 +16,12 @@ import time
 
 import numpy as np
 
-from telefringe.calibrate import calibrate_rig
-from telefringe.decode import decode
+from telefringe.calibration.calibrate import calibrate_rig
+from telefringe.fringes.decode import decode
+from telefringe.fringes.images import fringe_free_image
 from telefringe.simulate.calibration import iter_calibration_set, simulate_calibration_poses
 from telefringe.simulate.presets import get_preset
-from telefringe.targets import detect_circle_grid, fringe_free_image, projector_observations
+from telefringe.targets.circle_grid import detect_circle_grid, projector_observations
 
 
 def main() -> None:

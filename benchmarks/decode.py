@@ -15,7 +15,8 @@ load-independent one):
   and the same on one thread in CPU time (Mpx per CPU second);
 - telefringe ``decode``: the full result (sigma_u_p, diagnostics, HDR choice) from the same
   fused kernel, with and without learning the nonlinearity from the data (the gamma fit,
-  telefringe.gamma, is most of that time); and ``decode(exact=True)`` (float64 NumPy);
+  telefringe.fringes.nonlinearity, is most of that time); and ``decode(exact=True)``
+  (float64 NumPy);
 - a plain NumPy float32 reference (atan2, hierarchical unwrapping, mask);
 - the peers ``fringes`` (GPL-3.0: benchmarked in its own throwaway venv, never imported
   here) and OpenCV contrib's ``structured_light`` (3-step PSP only), when that venv
@@ -149,7 +150,7 @@ _PEER = textwrap.dedent(r'''
 _MEMORY = textwrap.dedent(r'''
     import sys, tracemalloc
     import numpy as np
-    from telefringe.decode import decode_axis_fast
+    from telefringe.fringes.decode import decode_axis_fast
     stacks = [np.load(p) for p in sys.argv[1:4]]
     decode_axis_fast([s[:, :16, :16].copy() for s in stacks], (1, 8, 64), 4,
                      length=800)  # load the cached kernel
@@ -164,7 +165,7 @@ _ASM = textwrap.dedent(r'''
     import re
     import numpy as np
     from telefringe import _kernels as _k
-    from telefringe.decode import decode_axis_fast
+    from telefringe.fringes.decode import decode_axis_fast
     st = [np.zeros((4, 8, 8), np.uint8) for _ in range(3)]
     decode_axis_fast(st, (1, 8, 64), 4, length=800)
     asm = "\n".join(_k.fused_ladder.inspect_asm().values())
@@ -190,10 +191,10 @@ def main() -> None:
 
     import numba
 
-    from telefringe import _kernels as _k
-    from telefringe.decode import decode, decode_axis_fast
-    from telefringe.gamma import PhaseErrorModel
-    from telefringe.scan import PhaseGroup, Scan, ScanManifest
+    from telefringe.fringes import _kernels as _k
+    from telefringe.fringes.decode import decode, decode_axis_fast
+    from telefringe.fringes.nonlinearity import PhaseErrorModel
+    from telefringe.fringes.scan import PhaseGroup, Scan, ScanManifest
 
     if args.threads:
         numba.set_num_threads(args.threads)
@@ -326,7 +327,7 @@ def main() -> None:
 
 
 def _read_only(big):
-    from telefringe import _kernels as _k
+    from telefringe.fringes import _kernels as _k
 
     return _k.read_floor(big)
 

@@ -18,10 +18,10 @@ def main() -> None:
     args = ap.parse_args()
     from scipy.ndimage import binary_erosion
 
-    from telefringe.decode import decode
-    from telefringe.gamma import periodic_error
-    from telefringe.phase import NoiseModel, wrapped_phase
-    from telefringe.scan import Scan, ScanManifest
+    from telefringe.fringes.decode import decode
+    from telefringe.fringes.nonlinearity import periodic_error
+    from telefringe.fringes.phase import NoiseModel, wrapped_phase
+    from telefringe.fringes.scan import Scan, ScanManifest
     from telefringe.simulate.presets import get_preset
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import default_bga, plate_at_z

@@ -26,7 +26,7 @@ What bounds each figure:
   of bytes (a (n, 4) float64 array into another) for scale; the arithmetic (two
   divisions, ~150 flops per pixel, vectorised, 2 threads) costs about as much again.
   The per-rig set-up (undistorting every camera pixel) is paid once per rig and shape.
-- decode + triangulate: decoding (telefringe.decode: wrapped phase, unwrapping and, by
+- decode + triangulate: decoding (telefringe.fringes.decode: wrapped phase, unwrapping and, by
   default, fitting and removing the projector's gamma from the fringes); triangulation is
   a few percent of it.
 - cold start: Python + numpy + typer/rich imports, numba's start-up and the loading of the
@@ -84,11 +84,11 @@ def mark(name):
 import telefringe.cli
 from telefringe.io.rig import load_rig
 from telefringe.io.scan import read_scan
-from telefringe.decode import decode
-from telefringe.reconstruct import triangulate, height_map
+from telefringe.fringes.decode import decode
+from telefringe.reconstruction.reconstruct import triangulate, height_map
 from telefringe.io import export
 mark("imports (cli, rig.json reader, decode, reconstruct)")
-from telefringe._distortion import undistort_point
+from telefringe.geometry._distortion_kernels import undistort_point
 undistort_point(0.0, 0.0, 0.0, 0.0, 0.0)
 mark("numba start-up (one cached function)")
 calib = load_rig(sys.argv[1])
@@ -137,10 +137,10 @@ def main() -> None:
     import numba
 
     from telefringe.cli.reconstruct import _preview
-    from telefringe.decode import decode
+    from telefringe.fringes.decode import decode
     from telefringe.io import export
     from telefringe.io.scan import read_scan, write_scan
-    from telefringe.reconstruct import Triangulator, height_map, triangulate
+    from telefringe.reconstruction.reconstruct import Triangulator, height_map, triangulate
     from telefringe.simulate.presets import get_preset
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import make_scene

@@ -28,9 +28,9 @@ import argparse
 
 import numpy as np
 
-from telefringe.patterns import gray_code_bits
-from telefringe.phase import wrapped_phase
-from telefringe.unwrap import (
+from telefringe.fringes.patterns import gray_code_bits
+from telefringe.fringes.phase import wrapped_phase
+from telefringe.fringes.unwrap import (
     unwrap_gray,
     unwrap_heterodyne,
     unwrap_hierarchical,
@@ -92,8 +92,8 @@ def synthetic(n: int, seed: int = 0) -> None:
 
 
 def rig() -> None:
-    from telefringe.decode import decode
-    from telefringe.phase import NoiseModel
+    from telefringe.fringes.decode import decode
+    from telefringe.fringes.phase import NoiseModel
     from telefringe.simulate.presets import get_preset
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import plate_at_z

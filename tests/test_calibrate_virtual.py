@@ -19,14 +19,15 @@ import numpy as np
 import pytest
 from test_calibrate import triangulate
 
-from telefringe.calibrate import calibrate_from_scans, mirror_pose
-from telefringe.decode import decode
-from telefringe.model import rotation_from_rotvec
+from telefringe.calibration.calibrate import calibrate_from_scans, mirror_pose
+from telefringe.fringes.decode import decode
+from telefringe.fringes.images import fringe_free_image
+from telefringe.geometry.so3 import rotation_from_rotvec
 from telefringe.simulate.calibration import iter_calibration_set, simulate_calibration_poses
 from telefringe.simulate.presets import get_preset
 from telefringe.simulate.render import default_groups, render_scan
 from telefringe.simulate.scenes import plate_from_target
-from telefringe.targets import detect_circle_grid, fringe_free_image, projector_observations
+from telefringe.targets.circle_grid import detect_circle_grid, projector_observations
 
 pytestmark = pytest.mark.slow
 DECODE = {"gamma_correction": False}

@@ -4,10 +4,10 @@ code, bit depths, and user errors."""
 import numpy as np
 import pytest
 
-from telefringe.decode import DecodeError, decode
-from telefringe.patterns import gray_code_bits
-from telefringe.phase import NoiseModel
-from telefringe.scan import GrayGroup, PhaseGroup, Scan, ScanManifest
+from telefringe.fringes.decode import DecodeError, decode
+from telefringe.fringes.patterns import gray_code_bits
+from telefringe.fringes.phase import NoiseModel
+from telefringe.fringes.scan import GrayGroup, PhaseGroup, Scan, ScanManifest
 
 W, H = 800, 600
 ROWS, COLS = 96, 128
@@ -184,7 +184,7 @@ def test_nonlinearity_learned_from_sampled_pixels_equals_the_full_image_fit(monk
                                                                            exposures):
     """The fused path computes the wrapped phases only at the pixels the fit uses; the
     models and coordinates must be exactly those of computing them over the whole image."""
-    import telefringe.decode as dec
+    import telefringe.fringes.decode as dec
     from telefringe.simulate.presets import get_preset
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import plate_at_z

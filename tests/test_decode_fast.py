@@ -5,10 +5,10 @@ float64 decoder, and bad input."""
 import numpy as np
 import pytest
 
-from telefringe import _kernels as _k
-from telefringe.decode import DecodeError, decode, decode_axis_fast
-from telefringe.gamma import PhaseErrorModel
-from telefringe.scan import PhaseGroup, Scan, ScanManifest
+from telefringe.fringes import _kernels as _k
+from telefringe.fringes.decode import DecodeError, decode, decode_axis_fast
+from telefringe.fringes.nonlinearity import PhaseErrorModel
+from telefringe.fringes.scan import PhaseGroup, Scan, ScanManifest
 
 
 def _wrapped_diff(a, b):
@@ -76,7 +76,7 @@ def test_float32_table_correction_matches_exact_interpolation():
     PhaseErrorModel(8, (3, 6, 9), np.array([0.05, -0.01, 0.003]),
                     np.array([-0.12, 0.02, -0.004]))])
 def test_series_correction_matches_the_exact_inverse(model):
-    from telefringe.decode import _model_tables
+    from telefringe.fringes.decode import _model_tables
 
     a, b, c0, d = _model_tables(model, 1)[2]
     # sums S, C of 8-bit 4-step data at every angle (radius 20 to 510 DN)

@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from telefringe.decode import decode
-from telefringe.phase import NoiseModel
-from telefringe.scan import Scan, ScanManifest
+from telefringe.fringes.decode import decode
+from telefringe.fringes.phase import NoiseModel
+from telefringe.fringes.scan import Scan, ScanManifest
 from telefringe.simulate.presets import get_preset
 from telefringe.simulate.render import default_groups, render_scan
 from telefringe.simulate.scenes import default_bga, plate_at_z

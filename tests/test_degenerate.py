@@ -13,11 +13,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-sim = pytest.importorskip("telefringe.simulate.render")
-from telefringe.io.rig import bare_rig_json  # noqa: E402
-from telefringe.io.scan import write_scan  # noqa: E402
-from telefringe.simulate.presets import get_preset  # noqa: E402
-from telefringe.simulate.scenes import plate_at_z  # noqa: E402
+import telefringe.simulate.render as sim
+from telefringe.io.rig import bare_rig_json
+from telefringe.io.scan import write_scan
+from telefringe.simulate.presets import get_preset
+from telefringe.simulate.scenes import plate_at_z
 
 
 def _run(*args, cwd):

@@ -4,16 +4,16 @@
 import numpy as np
 import pytest
 
-from telefringe.decode import decode
-from telefringe.gamma import (
+from telefringe.fringes.decode import decode
+from telefringe.fringes.nonlinearity import (
     PhaseErrorModel,
     default_harmonics,
     fit_phase_errors,
     fit_response,
     periodic_error,
 )
-from telefringe.patterns import precompensate
-from telefringe.phase import NoiseModel, wrap, wrapped_phase
+from telefringe.fringes.patterns import precompensate
+from telefringe.fringes.phase import NoiseModel, wrap, wrapped_phase
 from telefringe.simulate.presets import get_preset
 from telefringe.simulate.render import default_groups, render_scan
 from telefringe.simulate.scenes import plate_at_z

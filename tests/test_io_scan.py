@@ -21,13 +21,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from telefringe.calibration.manifest import CalibrationSetManifest
+from telefringe.fringes.scan import GrayGroup, PhaseGroup, Scan, ScanManifest
 from telefringe.io.errors import InputError
 from telefringe.io.images import write_png
 from telefringe.io.scan import (
     CALIB_FORMAT,
     SCAN_FORMAT,
-    CalibrationSetManifest,
-    CircleGridTarget,
     load_calibration_set,
     load_scan_manifest,
     parse_calibration_manifest,
@@ -37,7 +37,7 @@ from telefringe.io.scan import (
     write_calibration_manifest,
     write_scan,
 )
-from telefringe.scan import GrayGroup, PhaseGroup, Scan, ScanManifest
+from telefringe.targets.grid import CircleGridTarget
 
 FAST = settings(max_examples=80, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -10,13 +10,13 @@ import json
 import numpy as np
 import pytest
 
-sim = pytest.importorskip("telefringe.simulate.render")
-from telefringe.cli import main  # noqa: E402
-from telefringe.cli.reconstruct import reconstruct_to_folder  # noqa: E402
-from telefringe.io.scan import write_scan  # noqa: E402
-from telefringe.simulate import scenes  # noqa: E402
-from telefringe.simulate.experiments import bga_window  # noqa: E402
-from telefringe.simulate.presets import HDR_EXPOSURES, crop_camera, get_preset  # noqa: E402
+import telefringe.simulate.render as sim
+from telefringe.cli import main
+from telefringe.cli.reconstruct import reconstruct_to_folder
+from telefringe.io.scan import write_scan
+from telefringe.simulate import scenes
+from telefringe.simulate.experiments import bga_window
+from telefringe.simulate.presets import HDR_EXPOSURES, crop_camera, get_preset
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-from telefringe.metrology import (
+from telefringe.metrology.core import (
     BGANominal,
     MetrologyError,
     Plane,
@@ -22,7 +22,7 @@ from telefringe.metrology import (
     plane_distance,
     seating_plane_coplanarity,
 )
-from telefringe.reconstruct import PointCloud
+from telefringe.reconstruction.reconstruct import PointCloud
 
 
 def camera_grid(shape, *, pixel=0.0325, origin=(0.0, 0.0), angle_deg=0.0):
@@ -571,7 +571,7 @@ def test_gauss_spots_batched_matches_scipy():
     from scipy.optimize import least_squares
     from scipy.special import erf
 
-    from telefringe.metrology import _gauss_spots
+    from telefringe.metrology.core import _gauss_spots
 
     rng = np.random.default_rng(7)
     vv, uu = np.mgrid[0:7, 0:7].astype(float)

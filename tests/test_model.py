@@ -15,15 +15,9 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from telefringe.model import (
-    ConvergenceError,
-    Intrinsics,
-    TelecentricDevice,
-    distort_sensor,
-    rotation_from_rotvec,
-    rotvec_from_rotation,
-    undistort_sensor,
-)
+from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
+from telefringe.geometry.distortion import ConvergenceError, distort_sensor, undistort_sensor
+from telefringe.geometry.so3 import rotation_from_rotvec, rotvec_from_rotation
 
 FAST = settings(max_examples=60, deadline=None, derandomize=True)
 PX_TOL = 1e-10  # px, issue 2

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from telefringe.phase import (
+from telefringe.fringes.phase import (
     NoiseModel,
     PhaseInputError,
     WrappedPhase,

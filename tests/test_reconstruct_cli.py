@@ -7,13 +7,13 @@ import json
 import numpy as np
 import pytest
 
-sim = pytest.importorskip("telefringe.simulate.render")
-from telefringe.cli import main  # noqa: E402
-from telefringe.cli.reconstruct import reconstruct_to_folder  # noqa: E402
-from telefringe.io.errors import InputError  # noqa: E402
-from telefringe.io.scan import write_scan  # noqa: E402
-from telefringe.simulate import scenes  # noqa: E402
-from telefringe.simulate.presets import get_preset  # noqa: E402
+import telefringe.simulate.render as sim
+from telefringe.cli import main
+from telefringe.cli.reconstruct import reconstruct_to_folder
+from telefringe.io.errors import InputError
+from telefringe.io.scan import write_scan
+from telefringe.simulate import scenes
+from telefringe.simulate.presets import get_preset
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +41,8 @@ def test_reconstruct_folder_outputs(plate_out):
     # a rig whose projector does not match the scan's patterns
     from dataclasses import replace
 
-    from telefringe.model import Rig, TelecentricDevice
+    from telefringe.devices.rig import Rig
+    from telefringe.devices.telecentric import TelecentricDevice
 
     p = vr.rig.projector
     bad = Rig(vr.rig.camera, TelecentricDevice(replace(p.intrinsics, width=800, height=600),
@@ -106,7 +107,6 @@ def write_rig_json(path, rig):
 
 
 def test_reconstruct_command(plate_out, tmp_path, capsys):
-    pytest.importorskip("telefringe.io.rig")
     tmp, out, rec, vr = plate_out
     rig_json = write_rig_json(tmp_path / "rig.json", vr.rig)
     out2 = tmp_path / "out2"

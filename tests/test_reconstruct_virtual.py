@@ -15,20 +15,22 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-sim = pytest.importorskip("telefringe.simulate.render")
-from telefringe.decode import decode  # noqa: E402
-from telefringe.metrology import (  # noqa: E402
+import telefringe.simulate.render as sim
+from telefringe.devices.rig import Rig
+from telefringe.devices.telecentric import TelecentricDevice
+from telefringe.fringes.decode import decode
+from telefringe.fringes.images import fringe_free_image
+from telefringe.metrology.core import (
     BGANominal,
     measure_bga,
     measure_plate,
     measure_sphere,
     measure_steps,
 )
-from telefringe.model import Rig, TelecentricDevice  # noqa: E402
-from telefringe.reconstruct import scan_radiance, triangulate  # noqa: E402
-from telefringe.simulate import scenes  # noqa: E402
-from telefringe.simulate.presets import HDR_EXPOSURES, get_preset  # noqa: E402
-from telefringe.targets import detect_circle_grid, fringe_free_image  # noqa: E402
+from telefringe.reconstruction.reconstruct import scan_radiance, triangulate
+from telefringe.simulate import scenes
+from telefringe.simulate.presets import HDR_EXPOSURES, get_preset
+from telefringe.targets.circle_grid import detect_circle_grid
 
 K = 4.0
 

@@ -8,12 +8,12 @@ import json
 import numpy as np
 import pytest
 
-from telefringe.calibrate import calibrate_from_scans
-from telefringe.decode import decode
-from telefringe.gamma import PhaseErrorModel, mean_model, periodic_error
+from telefringe.calibration.calibrate import calibrate_from_scans
+from telefringe.fringes.decode import decode
+from telefringe.fringes.nonlinearity import PhaseErrorModel, mean_model, periodic_error
+from telefringe.fringes.phase import wrapped_phase
 from telefringe.io.errors import InputError
 from telefringe.io.rig import rig_from_json, rig_to_json
-from telefringe.phase import wrapped_phase
 from telefringe.simulate.calibration import iter_calibration_set, simulate_calibration_poses
 from telefringe.simulate.presets import get_preset
 from telefringe.simulate.render import default_groups, render_scan

@@ -8,8 +8,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from telefringe.model import rotation_from_rotvec, undistort_sensor
-from telefringe.scan import PhaseGroup
+from telefringe.fringes.scan import PhaseGroup
+from telefringe.geometry.distortion import undistort_sensor
+from telefringe.geometry.so3 import rotation_from_rotvec
 from telefringe.simulate.presets import crop_camera, get_preset
 from telefringe.simulate.render import (
     PROFILE_STEP_PX,

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from telefringe.model import Intrinsics, TelecentricDevice, rotation_from_rotvec
-from telefringe.targets import (
+from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
+from telefringe.geometry.so3 import rotation_from_rotvec
+from telefringe.targets.circle_grid import (
     GridDetection,
     detect_circle_grid,
     fit_ellipse,

@@ -4,8 +4,8 @@ orders, unreliable pixels flagged rather than guessed, and ladders that cannot w
 import numpy as np
 import pytest
 
-from telefringe.patterns import gray_code_bits
-from telefringe.unwrap import (
+from telefringe.fringes.patterns import gray_code_bits
+from telefringe.fringes.unwrap import (
     LadderError,
     absolute_unit_phase,
     decode_gray,

@@ -7,8 +7,8 @@ import sys
 
 import typer
 
-from .. import __version__
-from ._common import err_console, state
+from telefringe import __version__
+from telefringe.cli._common import err_console, state
 
 app = typer.Typer(
     name="telefringe",
@@ -55,7 +55,7 @@ def _flags_show_no_type() -> None:
 
 
 def _register_all():
-    from . import calibrate, decode, measure, paper, reconstruct, simulate
+    from telefringe.cli import calibrate, decode, measure, paper, reconstruct, simulate
 
     for mod in (simulate, decode, calibrate, reconstruct, measure, paper):
         mod.register(app)
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point: run the app; user errors end with one line and exit status 2."""
     from rich.markup import escape
 
-    from ..io.errors import InputError
+    from telefringe.io.errors import InputError
 
     if argv is None:
         argv = sys.argv[1:]

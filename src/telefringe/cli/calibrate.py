@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from ._common import console, detail, info, progress_bar, state
+from telefringe.cli._common import console, detail, info, progress_bar, state
 
 __all__ = ["register", "write_report", "parameter_table"]
 
@@ -39,7 +39,7 @@ def parameter_table(calib):
     """A rich Table of both devices' parameters with their standard deviations."""
     from rich.table import Table
 
-    from ..calibrate import INTRINSIC_NAMES
+    from telefringe.calibration.calibrate import INTRINSIC_NAMES
 
     table = Table(title="rig parameters (± one standard deviation)")
     table.add_column("parameter")
@@ -161,11 +161,11 @@ def calibrate_cmd(
 
     Example: telefringe calibrate sim_cal/calibration -o rig.json --report cal_report
     """
-    from ..calibrate import CalibrationError, calibrate_from_scans
-    from ..io.atomic import atomic_dir, check_can_write
-    from ..io.errors import InputError
-    from ..io.rig import save_rig
-    from ..io.scan import load_calibration_set, read_scan
+    from telefringe.calibration.calibrate import CalibrationError, calibrate_from_scans
+    from telefringe.io.atomic import atomic_dir, check_can_write
+    from telefringe.io.errors import InputError
+    from telefringe.io.rig import save_rig
+    from telefringe.io.scan import load_calibration_set, read_scan
 
     check_can_write(output, force=force)
     if report is not None:

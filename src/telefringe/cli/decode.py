@@ -6,11 +6,11 @@ from pathlib import Path
 
 import typer
 
-from ._common import detail, info, progress_bar
+from telefringe.cli._common import detail, info, progress_bar
 
 
 def _parse_periods(text: str) -> list[int]:
-    from ..io.errors import InputError
+    from telefringe.io.errors import InputError
 
     try:
         per = [int(p) for p in text.replace(" ", "").split(",") if p]
@@ -25,7 +25,7 @@ def _parse_periods(text: str) -> list[int]:
 
 
 def _parse_axes(text: str) -> list[str]:
-    from ..io.errors import InputError
+    from telefringe.io.errors import InputError
 
     axes = [a for a in text.replace(" ", "").split(",") if a]
     if not axes or any(a not in ("u", "v") for a in axes) or len(set(axes)) != len(axes):
@@ -57,18 +57,18 @@ def decode_cmd(
 
     Example: telefringe decode scans/part -o part_coords.npz --rig rig.json
     """
-    from ..decode import DecodeError, decode
-    from ..io.atomic import check_can_write
-    from ..io.coords import write_coords
-    from ..io.errors import InputError
-    from ..io.scan import load_scan_manifest, read_scan
-    from ..phase import PhaseInputError
+    from telefringe.fringes.decode import DecodeError, decode
+    from telefringe.fringes.phase import PhaseInputError
+    from telefringe.io.atomic import check_can_write
+    from telefringe.io.coords import write_coords
+    from telefringe.io.errors import InputError
+    from telefringe.io.scan import load_scan_manifest, read_scan
 
     check_can_write(output, force=force)
     phase_errors = None
     man = load_scan_manifest(scan)
     if rig is not None:
-        from ..io.rig import load_rig
+        from telefringe.io.rig import load_rig
 
         calib = load_rig(rig)
         kp = calib.rig.projector.intrinsics
@@ -150,11 +150,11 @@ def patterns_cmd(
     Example: telefringe patterns pats --width 800 --height 600 --steps 4 --periods 1,8,64
     --axes u,v
     """
-    from ..decode import DecodeError, choose_method
-    from ..io.atomic import check_can_write
-    from ..io.errors import InputError
-    from ..io.scan import write_scan
-    from ..patterns import pattern_scan
+    from telefringe.fringes.decode import DecodeError, choose_method
+    from telefringe.fringes.patterns import pattern_scan
+    from telefringe.io.atomic import check_can_write
+    from telefringe.io.errors import InputError
+    from telefringe.io.scan import write_scan
 
     check_can_write(out, force=force)
     per = _parse_periods(periods)

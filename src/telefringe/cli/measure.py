@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ._common import info
+from telefringe.cli._common import info
 
 measure_app = typer.Typer(
     name="measure",
@@ -20,19 +20,19 @@ _JSON_HELP = "Also write the results to this JSON file."
 
 
 def _load(out: Path):
-    from ..io.export import read_points
+    from telefringe.io.export import read_points
 
     return read_points(out)
 
 
 def _metrology_errors():
-    from ..metrology import MetrologyError
+    from telefringe.metrology.core import MetrologyError
 
     return MetrologyError
 
 
 def _fail(out, exc):
-    from ..io.errors import InputError
+    from telefringe.io.errors import InputError
 
     raise InputError(f"{out}: {exc}") from None
 
@@ -44,14 +44,14 @@ def _um(x) -> str:
 def _save_json(path: Path | None, obj, force: bool) -> None:
     if path is None:
         return
-    from ..io.export import write_json
+    from telefringe.io.export import write_json
 
     write_json(path, obj, force=force)
     info(f"wrote {path}")
 
 
 def _check_outputs(paths, force: bool) -> None:
-    from ..io.atomic import check_can_write
+    from telefringe.io.atomic import check_can_write
 
     for p in paths:
         if p is not None:
@@ -63,8 +63,8 @@ def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3
                          dark: bool = True):
     """Detect the circle grid in ``out``'s texture and measure the plate
     (PlateMeasurement). User problems raise InputError."""
-    from ..metrology import measure_plate
-    from ..targets import detect_circle_grid
+    from telefringe.metrology.core import measure_plate
+    from telefringe.targets.circle_grid import detect_circle_grid
 
     out = Path(out)
     cloud, texture = _load(out)
@@ -95,7 +95,7 @@ def plate_cmd(
 
     Example: telefringe measure plate plate_3d --json plate.json
     """
-    from ..io.export import plate_summary
+    from telefringe.io.export import plate_summary
 
     _check_outputs([json_path], force)
     m = measure_plate_folder(out, rows=rows, cols=cols, pitch=pitch, dark=dark)
@@ -123,8 +123,8 @@ def sphere_cmd(
 
     Example: telefringe measure sphere sphere_3d --json sphere.json
     """
-    from ..io.export import sphere_summary
-    from ..metrology import measure_sphere
+    from telefringe.io.export import sphere_summary
+    from telefringe.metrology.core import measure_sphere
 
     _check_outputs([json_path], force)
     cloud, _ = _load(out)
@@ -145,8 +145,8 @@ def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,
     """Measure the BGA in ``out`` (BGAMeasurement). User problems raise InputError.
     ``free_radius``: fit each cap's radius too (diameters reported, apex heights less
     accurate) instead of the nominal-radius fit through the point-spread model."""
-    from ..io.export import load_points
-    from ..metrology import BGANominal, measure_bga
+    from telefringe.io.export import load_points
+    from telefringe.metrology.core import BGANominal, measure_bga
 
     out = Path(out)
     pf = load_points(out)
@@ -184,7 +184,7 @@ def bga_cmd(
 
     Example: telefringe measure bga bga_3d --rows 24 --cols 24 --json bga.json
     """
-    from ..io.export import bga_summary, write_bga_csv, write_bga_png
+    from telefringe.io.export import bga_summary, write_bga_csv, write_bga_png
 
     out = Path(out)
     csv_path = out / "bga.csv" if csv_path is None else csv_path
@@ -220,8 +220,8 @@ def steps_cmd(
 
     Example: telefringe measure steps steps_3d --json steps.json
     """
-    from ..io.export import steps_summary
-    from ..metrology import measure_steps
+    from telefringe.io.export import steps_summary
+    from telefringe.metrology.core import measure_steps
 
     _check_outputs([json_path], force)
     cloud, _ = _load(out)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from ._common import console, info, progress_bar, state
+from telefringe.cli._common import console, info, progress_bar, state
 
 __all__ = ["register"]
 
@@ -20,7 +20,7 @@ def _print_tables(result) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from ..simulate.experiments import PAPER_TABLE3, PAPER_TABLE4
+    from telefringe.simulate.experiments import PAPER_TABLE3, PAPER_TABLE4
 
     cal = result.calibration
     console.print(f"\n[bold]Calibration[/bold] ({result.rig_name}, "
@@ -84,11 +84,11 @@ def paper(
 
     Example: telefringe paper --quick --json tables.json --figures paper_figs
     """
-    from ..io.atomic import atomic_dir, check_can_write
-    from ..io.errors import InputError
-    from ..io.export import write_json
-    from ..io.figures import paper_result_to_json, write_spacing_histograms
-    from ..simulate.experiments import run_paper
+    from telefringe.io.atomic import atomic_dir, check_can_write
+    from telefringe.io.errors import InputError
+    from telefringe.io.export import write_json
+    from telefringe.io.figures import paper_result_to_json, write_spacing_histograms
+    from telefringe.simulate.experiments import run_paper
 
     if seed < 0:
         raise InputError(f"--seed must be >= 0, got {seed}")
@@ -115,7 +115,7 @@ def paper(
 # --------------------------------------------------------------------------- demo
 def _step(title: str, args: list[str]) -> None:
     """Run one telefringe command in this process, as a user would type it."""
-    from . import app
+    from telefringe.cli import app
 
     info(f"\n[bold cyan]$ telefringe {' '.join(args)}[/bold cyan]  [dim]({title})[/dim]")
     extra = ["-q"] if state.quiet else []
@@ -137,7 +137,7 @@ def demo(
     import json
     import shutil
 
-    from ..io.atomic import check_can_write
+    from telefringe.io.atomic import check_can_write
 
     check_can_write(out, force=force)
     if out.exists():

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ._common import detail, info, progress_bar
+from telefringe.cli._common import detail, info, progress_bar
 
 
 def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
@@ -25,10 +25,11 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    from ..decode import DecodeError
-    from ..io.atomic import atomic_dir, check_can_write
-    from ..io.errors import InputError
-    from ..io.export import (
+    from telefringe.fringes.decode import DecodeError
+    from telefringe.fringes.phase import PhaseInputError
+    from telefringe.io.atomic import atomic_dir, check_can_write
+    from telefringe.io.errors import InputError
+    from telefringe.io.export import (
         cloud_summary,
         write_height_png,
         write_height_tiff,
@@ -36,9 +37,8 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
         write_ply,
         write_points,
     )
-    from ..io.scan import load_scan_manifest, read_scan
-    from ..phase import PhaseInputError
-    from ..reconstruct import TriangulationError, reconstruct_scan
+    from telefringe.io.scan import load_scan_manifest, read_scan
+    from telefringe.reconstruction.reconstruct import TriangulationError, reconstruct_scan
 
     output = Path(output)
     check_can_write(output, force=force)
@@ -169,7 +169,7 @@ def reconstruct_cmd(
 
     Example: telefringe reconstruct scans/part --rig rig.json -o part_3d
     """
-    from ..io.errors import InputError
+    from telefringe.io.errors import InputError
 
     if pixel_mm is not None and not (pixel_mm > 0):
         raise InputError(f"--pixel-mm must be > 0, got {pixel_mm}")
@@ -178,7 +178,7 @@ def reconstruct_cmd(
     # third-party leaves only, which nothing else imports meanwhile (two threads importing
     # modules that import each other could see each other's half-initialised modules)
     _prefetch("plyfile", "tifffile", "PIL.Image", "PIL.ImageDraw")
-    from ..io.rig import load_rig
+    from telefringe.io.rig import load_rig
 
     rig_obj = load_rig(rig)
     extra = {"phase_errors": None} if refit_gamma else {}

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import typer
 
-from ._common import detail, info, progress_bar
+from telefringe.cli._common import detail, info, progress_bar
 
 __all__ = ["register"]
 
@@ -47,7 +47,7 @@ def _advance_by(advance):
 
 def _check_options(*, seed: int, poses: int | None = None, z: float | None = None,
                    bit_depth: int | None = None):
-    from ..io.errors import InputError
+    from telefringe.io.errors import InputError
 
     if seed < 0:
         raise InputError(f"--seed must be >= 0, got {seed}")
@@ -71,15 +71,15 @@ def calibration(
 
     Example: telefringe simulate calibration sim_cal --rig paper --poses 12
     """
-    from ..io.atomic import atomic_dir, check_can_write
-    from ..io.scan import write_calibration_manifest, write_scan
-    from ..io.truth import write_rig_truth, write_truth
-    from ..simulate.calibration import (
+    from telefringe.io.atomic import atomic_dir, check_can_write
+    from telefringe.io.scan import write_calibration_manifest, write_scan
+    from telefringe.io.truth import write_rig_truth, write_truth
+    from telefringe.simulate.calibration import (
         calibration_manifest,
         iter_calibration_set,
         simulate_calibration_poses,
     )
-    from ..simulate.presets import get_preset
+    from telefringe.simulate.presets import get_preset
 
     _check_options(seed=seed, poses=poses, bit_depth=bit_depth)
     check_can_write(out, force=force)
@@ -125,13 +125,13 @@ def scan(
 
     Example: telefringe simulate scan sim_bga --scene bga --hdr
     """
-    from ..io.atomic import atomic_dir, check_can_write
-    from ..io.errors import InputError
-    from ..io.scan import write_scan
-    from ..io.truth import write_rig_truth, write_truth
-    from ..simulate.presets import HDR_EXPOSURES, get_preset
-    from ..simulate.render import default_groups, render_scan
-    from ..simulate.scenes import make_scene
+    from telefringe.io.atomic import atomic_dir, check_can_write
+    from telefringe.io.errors import InputError
+    from telefringe.io.scan import write_scan
+    from telefringe.io.truth import write_rig_truth, write_truth
+    from telefringe.simulate.presets import HDR_EXPOSURES, get_preset
+    from telefringe.simulate.render import default_groups, render_scan
+    from telefringe.simulate.scenes import make_scene
 
     _check_options(seed=seed, z=z, bit_depth=bit_depth)
     check_can_write(out, force=force)

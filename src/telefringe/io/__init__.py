@@ -1,5 +1,5 @@
 """File formats and file access. The only package (with ``cli``) that touches files."""
 
-from .errors import InputError
+from telefringe.io.errors import InputError
 
 __all__ = ["InputError"]

@@ -24,7 +24,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from .errors import InputError
+from telefringe.io.errors import InputError
 
 __all__ = ["atomic_file", "atomic_dir", "write_json_atomic", "check_can_write"]
 

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_file
-from .errors import InputError
+from telefringe.io.atomic import atomic_file
+from telefringe.io.errors import InputError
 
 __all__ = ["write_coords", "read_coords", "COORD_ARRAYS"]
 

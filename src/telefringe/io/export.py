@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_file, write_json_atomic
-from .errors import InputError
+from telefringe.io.atomic import atomic_file, write_json_atomic
+from telefringe.io.errors import InputError
 
 __all__ = [
     "POINTS_FORMAT",
@@ -158,7 +158,7 @@ def read_points(path):
 
 def load_points(path) -> PointsFile:
     """Like :func:`read_points`, with every optional array (:class:`PointsFile`)."""
-    from ..reconstruct import PointCloud
+    from telefringe.reconstruction.reconstruct import PointCloud
 
     path = Path(path)
     if path.is_dir():
@@ -292,7 +292,7 @@ def read_height_tiff(path):
     """Read a height map written by :func:`write_height_tiff` (HeightMap)."""
     import tifffile
 
-    from ..reconstruct import HeightMap
+    from telefringe.reconstruction.reconstruct import HeightMap
 
     path = Path(path)
     side = path.with_suffix(".json")
@@ -577,7 +577,7 @@ def _f(x):
 
 def cloud_summary(cloud) -> dict:
     """Counts and uncertainty figures of a point cloud."""
-    from ..reconstruct import (
+    from telefringe.reconstruction.reconstruct import (
         FLAG_INCONSISTENT,
         FLAG_NO_PHASE,
         FLAG_NOT_CONVERGED,

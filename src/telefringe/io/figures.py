@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_file
+from telefringe.io.atomic import atomic_file
 
 __all__ = ["write_spacing_histograms", "paper_result_to_json"]
 
@@ -49,7 +49,7 @@ def write_spacing_histograms(path, rows, *, pitch_mm: float, force: bool = True)
 
 def paper_result_to_json(result) -> dict:
     """A JSON-able summary of :class:`telefringe.simulate.experiments.PaperResult`."""
-    from ..simulate.experiments import PAPER_TABLE3, PAPER_TABLE4
+    from telefringe.simulate.experiments import PAPER_TABLE3, PAPER_TABLE4
 
     cal = result.calibration
     plate = []

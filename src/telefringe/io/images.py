@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from telefringe.io.errors import InputError
 
 __all__ = ["read_image", "write_png", "image_header", "image_info", "ImageInfo", "MAX_PIXELS"]
 

@@ -39,7 +39,7 @@ the observations and the target poses). Layout::
       }
     }
 
-Devices follow :mod:`telefringe.model`: ``[xu, yu] = m (R[0:2] X + t)`` (sensor mm),
+Devices follow :mod:`telefringe.devices.telecentric`: ``[xu, yu] = m (R[0:2] X + t)`` (sensor mm),
 radial + thin-prism distortion on the sensor plane, ``u = u0 + xd / du``; ``R`` is the
 rotation of ``rotation_vector`` (world -> device). Missing values in the report's
 arrays (unobserved markers, fixed parameters) are ``null``; anything else that is not
@@ -54,10 +54,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..calibrate import RIG_PARAMETER_NAMES, Outlier, RigCalibration
-from ..model import Intrinsics, Rig, TelecentricDevice, rotation_from_rotvec, rotvec_from_rotation
-from .atomic import write_json_atomic
-from .errors import InputError
+from telefringe.calibration.calibrate import RIG_PARAMETER_NAMES, Outlier, RigCalibration
+from telefringe.devices.rig import Rig
+from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
+from telefringe.geometry.so3 import rotation_from_rotvec, rotvec_from_rotation
+from telefringe.io.atomic import write_json_atomic
+from telefringe.io.errors import InputError
 
 __all__ = ["RIG_FORMAT", "RIG_VERSION", "save_rig", "load_rig", "rig_to_json", "rig_from_json",
            "bare_rig_json"]
@@ -399,7 +401,7 @@ def rig_from_json(doc, *, where: str = "rig.json") -> RigCalibration:
 
 def _phase_errors(r: _Reader, doc) -> dict:
     """The optional ``phase_errors`` block: ``(axis, periods, steps) -> PhaseErrorModel``."""
-    from ..gamma import PhaseErrorModel
+    from telefringe.fringes.nonlinearity import PhaseErrorModel
 
     if doc is None:
         return {}
@@ -451,7 +453,7 @@ def load_rig(path) -> RigCalibration:
     Returns
     -------
     RigCalibration
-        Stands for a :class:`telefringe.model.Rig` too (``.camera``, ``.projector``);
+        Stands for a :class:`telefringe.devices.rig.Rig` too (``.camera``, ``.projector``);
         ``.rig`` is the Rig itself.
 
     Raises

@@ -12,15 +12,16 @@ import math
 import os
 import posixpath
 import stat
-from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from ..scan import GrayGroup, PhaseGroup, Scan, ScanManifest
-from .atomic import atomic_dir, write_json_atomic
-from .errors import InputError
-from .images import image_info, read_image, write_png
+from telefringe.calibration.manifest import CalibrationSetManifest
+from telefringe.fringes.scan import GrayGroup, PhaseGroup, Scan, ScanManifest
+from telefringe.io.atomic import atomic_dir, write_json_atomic
+from telefringe.io.errors import InputError
+from telefringe.io.images import image_info, read_image, write_png
+from telefringe.targets.grid import CIRCLE_STYLES, CircleGridTarget
 
 __all__ = [
     "SCAN_FORMAT",
@@ -542,54 +543,6 @@ def write_scan(folder, scan: Scan, *, force: bool = False) -> Path:
 
 
 # --------------------------------------------------------------------------- calibration set
-@dataclass(frozen=True)
-class CircleGridTarget:
-    """A planar grid of circles: ``rows`` x ``cols`` at ``pitch_mm``; dark on light."""
-
-    rows: int
-    cols: int
-    pitch_mm: float
-    diameter_mm: float
-    circles: str = "dark-on-light"
-
-    def __post_init__(self):
-        for nm in ("rows", "cols"):
-            v = getattr(self, nm)
-            if not (_is_int(v) or isinstance(v, np.integer)) or v < 2:
-                raise ValueError(f"CircleGridTarget.{nm} must be an integer >= 2, got {v!r}")
-        for nm in ("pitch_mm", "diameter_mm"):
-            v = getattr(self, nm)
-            if not (_is_num(v) or isinstance(v, np.floating)) or not np.isfinite(v) or v <= 0:
-                raise ValueError(f"CircleGridTarget.{nm} must be a positive number, got {v!r}")
-        if self.diameter_mm >= self.pitch_mm:
-            raise ValueError("CircleGridTarget.diameter_mm must be smaller than pitch_mm")
-        if self.circles not in _CIRCLES:
-            raise ValueError(f"CircleGridTarget.circles must be one of {_CIRCLES}, got "
-                             f"{self.circles!r}")
-
-    def points_target(self) -> np.ndarray:
-        """Circle centres in the target frame, (rows * cols, 3) mm, row-major (row, col):
-        x = col * pitch, y = row * pitch, z = 0."""
-        r, c = np.mgrid[0:self.rows, 0:self.cols]
-        return np.stack([c.ravel() * self.pitch_mm, r.ravel() * self.pitch_mm,
-                         np.zeros(r.size)], axis=1)
-
-
-_CIRCLES = ("dark-on-light", "light-on-dark")
-
-
-@dataclass(frozen=True)
-class CalibrationSetManifest:
-    """Content of ``calibration.json``: the target, pixel sizes and pose scan folders."""
-
-    target: CircleGridTarget
-    camera_pixel_size: tuple[float, float]
-    projector_pixel_size: tuple[float, float]
-    poses: tuple[str, ...]
-    reference_pose: str
-    folder: str = ""
-
-
 _CAL_KEYS = {"format", "version", "target", "camera", "projector", "poses", "reference_pose",
              "meta"}
 _TARGET_KEYS = {"type", "rows", "cols", "pitch_mm", "diameter_mm", "circles"}
@@ -636,7 +589,7 @@ def parse_calibration_manifest(doc, *, folder: Path | None = None,
             if not _is_num(v) or v <= 0:
                 probs.add(f"'target.{nm}' must be a positive number (mm), got {_r(v)}")
         circ = t.get("circles", "dark-on-light")
-        if circ not in _CIRCLES:
+        if circ not in CIRCLE_STYLES:
             probs.add(f"'target.circles' must be 'dark-on-light' or 'light-on-dark', got "
                       f"{_r(circ)}")
         if (_is_num(t.get("pitch_mm")) and _is_num(t.get("diameter_mm"))

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_file, write_json_atomic
-from .errors import InputError
+from telefringe.io.atomic import atomic_file, write_json_atomic
+from telefringe.io.errors import InputError
 
 __all__ = ["write_truth", "read_truth", "truth_features_to_json", "rig_to_json",
            "write_rig_truth", "TRUTH_FORMAT"]
@@ -133,7 +133,7 @@ def read_truth(folder, name: str):
     """Read ``folder/NAME.npz`` + ``NAME.json`` back into a
     :class:`~telefringe.simulate.render.Truth` (array features from the npz, the rest
     from the JSON)."""
-    from ..simulate.render import Truth
+    from telefringe.simulate.render import Truth
 
     folder = Path(folder)
     npz, js = folder / f"{name}.npz", folder / f"{name}.json"

@@ -7,7 +7,7 @@ import math
 import numba
 import numpy as np
 
-from .._distortion import undistort_point as _undistort_one
+from telefringe.geometry._distortion_kernels import undistort_point as _undistort_one
 
 __all__ = ["accumulate_samples", "heightfield_eval", "heightfield_intersect", "camera_rays",
            "project_points", "shade", "interp_samples", "plate_intersect", "boxes_intersect",
@@ -187,7 +187,7 @@ def camera_rays(u, v, intr, R, t, start):
 
 @numba.njit(cache=True, nogil=True)
 def project_points(P, intr, R, t):
-    """Project world points P (N, 3) with a device (same formula as model.project)."""
+    """Project world points P (N, 3) with a device (same formula as TelecentricDevice.project)."""
     n = P.shape[0]
     up = np.empty(n)
     vp = np.empty(n)

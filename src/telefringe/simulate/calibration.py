@@ -16,12 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..io.scan import CalibrationSetManifest
-from ..model import rotation_from_rotvec
-from ..scan import Scan
-from .presets import VirtualRig
-from .render import Truth, default_groups, render_scan
-from .scenes import CirclePlate, plate_from_target
+from telefringe.calibration.manifest import CalibrationSetManifest
+from telefringe.fringes.scan import Scan
+from telefringe.geometry.so3 import rotation_from_rotvec
+from telefringe.simulate.presets import VirtualRig
+from telefringe.simulate.render import Truth, default_groups, render_scan
+from telefringe.simulate.scenes import CirclePlate, plate_from_target
 
 __all__ = ["CalibrationPose", "simulate_calibration_poses", "mirror_pose",
            "render_calibration_set", "iter_calibration_set", "calibration_manifest"]

@@ -22,8 +22,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..model import Rig
-from .presets import HDR_EXPOSURES, VirtualRig, get_preset
+from telefringe.devices.rig import Rig
+from telefringe.simulate.presets import HDR_EXPOSURES, VirtualRig, get_preset
 
 __all__ = [
     "PAPER_TABLE3",
@@ -207,8 +207,12 @@ def run_calibration(vrig: VirtualRig, *, n_poses: int, seed: int = 0,
     ``{"gamma_correction": False}``). Returns the
     :class:`telefringe.calibrate.RigCalibration`.
     """
-    from ..calibrate import calibrate_from_scans
-    from .calibration import calibration_manifest, iter_calibration_set, simulate_calibration_poses
+    from telefringe.calibration.calibrate import calibrate_from_scans
+    from telefringe.simulate.calibration import (
+        calibration_manifest,
+        iter_calibration_set,
+        simulate_calibration_poses,
+    )
 
     poses = simulate_calibration_poses(vrig, n_poses=n_poses, seed=seed)
     man = calibration_manifest(vrig, poses)
@@ -226,11 +230,11 @@ def run_calibration(vrig: VirtualRig, *, n_poses: int, seed: int = 0,
 
 def run_plate(vrig: VirtualRig, rig: Rig, position: float, *, seed: int = 0) -> PlateRow:
     """Scan the circle plate raised to Z = ``position`` mm and measure it (Table 3 row)."""
-    from ..metrology import measure_plate
-    from ..reconstruct import reconstruct_scan
-    from ..targets import detect_circle_grid
-    from .render import default_groups, render_scan
-    from .scenes import plate_at_z
+    from telefringe.metrology.core import measure_plate
+    from telefringe.reconstruction.reconstruct import reconstruct_scan
+    from telefringe.simulate.render import default_groups, render_scan
+    from telefringe.simulate.scenes import plate_at_z
+    from telefringe.targets.circle_grid import detect_circle_grid
 
     target = vrig.target
     scan, truth = render_scan(vrig, plate_at_z(position, target=target), default_groups(vrig),
@@ -277,11 +281,11 @@ def _five_pairs(meas, rows: int, cols: int) -> list[tuple[tuple[int, int], tuple
 
 def run_bga(vrig: VirtualRig, rig: Rig, *, seed: int = 0, hdr: bool = True) -> BGAResult:
     """Scan the default BGA (HDR unless ``hdr`` is False), measure it, compare with truth."""
-    from ..metrology import BGANominal, measure_bga, seating_plane_coplanarity
-    from ..metrology import Plane as _Plane
-    from ..reconstruct import reconstruct_scan
-    from .render import default_groups, render_scan
-    from .scenes import default_bga
+    from telefringe.metrology.core import BGANominal, measure_bga, seating_plane_coplanarity
+    from telefringe.metrology.core import Plane as _Plane
+    from telefringe.reconstruction.reconstruct import reconstruct_scan
+    from telefringe.simulate.render import default_groups, render_scan
+    from telefringe.simulate.scenes import default_bga
 
     bga = default_bga(seed)
     exposures = HDR_EXPOSURES if hdr else (1.0,)
@@ -375,7 +379,7 @@ def run_paper(*, quick: bool = False, seed: int = 0, n_poses: int | None = None,
     if quick:
         # solder balls are ~7 binned pixels wide: read the BGA at full resolution in a
         # window around it (a region of interest), with the calibrated camera unbinned
-        from .presets import crop_camera
+        from telefringe.simulate.presets import crop_camera
 
         full = get_preset("paper")
         col0, row0 = bga_window(full)

@@ -22,8 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..io.scan import CircleGridTarget
-from ..model import Intrinsics, Rig, TelecentricDevice, rotation_from_rotvec
+from telefringe.devices.rig import Rig
+from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
+from telefringe.geometry.so3 import rotation_from_rotvec
+from telefringe.targets.grid import CircleGridTarget
 
 __all__ = ["Photometry", "VirtualRig", "get_preset", "crop_camera", "PRESETS", "PAPER_TARGET",
            "HDR_EXPOSURES"]
@@ -144,7 +146,7 @@ class VirtualRig:
     Attributes
     ----------
     name : str
-    rig : telefringe.model.Rig
+    rig : telefringe.devices.rig.Rig
         True camera and projector; the world frame is the calibration target at its
         reference pose (x along columns, y along rows, z toward the camera).
     photometry : Photometry

@@ -34,11 +34,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.special import ndtr
 
-from ..model import ConvergenceError
-from ..patterns import pattern_stack
-from ..scan import GrayGroup, PhaseGroup, Scan, ScanManifest
-from . import _kernels as _k
-from .presets import VirtualRig
+from telefringe.fringes.patterns import pattern_stack
+from telefringe.fringes.scan import GrayGroup, PhaseGroup, Scan, ScanManifest
+from telefringe.geometry.distortion import ConvergenceError
+from telefringe.simulate import _kernels as _k
+from telefringe.simulate.presets import VirtualRig
 
 __all__ = ["Truth", "Geometry", "default_groups", "render_scan", "trace_geometry",
            "projector_profile", "projector_profile_exact", "render_images"]

@@ -20,9 +20,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..io.scan import CircleGridTarget
-from ..model import rotation_from_rotvec
-from . import _kernels as _k
+from telefringe.geometry.so3 import rotation_from_rotvec
+from telefringe.simulate import _kernels as _k
+from telefringe.targets.grid import CircleGridTarget
 
 __all__ = [
     "Hits",
@@ -203,7 +203,7 @@ def plate_from_target(target: CircleGridTarget, R_world_target=None, t_world_tar
 def plate_at_z(z: float = 0.0, *, target: CircleGridTarget | None = None, **kw) -> CirclePlate:
     """The calibration plate at its reference orientation, raised by ``z`` mm (a stage move
     along world Z, as in Table 3 of the paper)."""
-    from .presets import PAPER_TARGET
+    from telefringe.simulate.presets import PAPER_TARGET
 
     return plate_from_target(target or PAPER_TARGET, np.eye(3), np.array([0.0, 0.0, float(z)]),
                              **kw)
@@ -532,7 +532,7 @@ class HeightField:
 
     def height_at(self, x, y):
         """Bilinear height at world (x, y) (arrays broadcast); NaN outside the grid."""
-        from ._kernels import heightfield_eval
+        from telefringe.simulate._kernels import heightfield_eval
 
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)
@@ -542,7 +542,7 @@ class HeightField:
         return h.reshape(xb.shape)
 
     def intersect(self, origins, direction) -> Hits:
-        from ._kernels import heightfield_intersect
+        from telefringe.simulate._kernels import heightfield_intersect
 
         o, d = _check_rays(origins, direction)
         n = len(o)

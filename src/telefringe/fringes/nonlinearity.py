@@ -37,7 +37,7 @@ from functools import cached_property
 
 import numpy as np
 
-from . import _gamma_kernels as _k
+from telefringe.fringes import _nonlinearity_kernels as _k
 
 __all__ = [
     "PhaseErrorModel",

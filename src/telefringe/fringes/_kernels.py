@@ -1,6 +1,6 @@
 """Numba kernels of the decoder (private; the phase-error model's are in
-:mod:`telefringe._gamma_kernels`). ``cache=True``; no fastmath except FMA contraction in
-the fused kernel (bounded by tests)."""
+:mod:`telefringe.fringes._nonlinearity_kernels`). ``cache=True``; no fastmath except FMA
+contraction in the fused kernel (bounded by tests)."""
 
 from __future__ import annotations
 

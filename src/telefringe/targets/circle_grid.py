@@ -30,7 +30,6 @@ __all__ = [
     "ProjectorObservations",
     "detect_circle_grid",
     "fit_ellipse",
-    "fringe_free_image",
     "projector_observations",
 ]
 
@@ -961,21 +960,3 @@ def projector_observations(u_p, v_p, mask, centers, *, ellipses=None,
         sig[k] = res[2], res[3]
         npx[k] = int(res[4])
     return ProjectorObservations(out, sig, npx)
-
-
-# --------------------------------------------------------------------------- images
-def fringe_free_image(scan) -> np.ndarray:
-    """The image of a scan in which to look for the target's markers (float64).
-
-    The ``white`` frame when the scan has one, else the mean of the phase group with the
-    most steps (ties: the finest), whose sum over a full set of equal shifts cancels the
-    fringes.
-    """
-    if scan.white is not None:
-        return np.asarray(scan.white, dtype=np.float64)
-    groups = list(zip(scan.manifest.groups, scan.stacks, strict=True))
-    phase = [(g, s) for g, s in groups if hasattr(g, "periods")]
-    if not phase:
-        raise ValueError(f"{scan.source}: no white frame and no phase group to average")
-    g, s = max(phase, key=lambda gs: (gs[0].steps, gs[0].periods, gs[0].exposure <= 1.0))
-    return np.asarray(s, dtype=np.float64).mean(axis=0)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scan import GrayGroup, PhaseGroup
+from telefringe.fringes.scan import GrayGroup, PhaseGroup
 
 __all__ = ["fringe_intensity", "gray_code_bits", "pattern_stack", "quantize",
            "pattern_groups", "precompensate", "pattern_scan"]
@@ -135,7 +135,7 @@ def pattern_scan(*, width: int, height: int, steps: int, periods, axes=("u", "v"
     fringes are pre-compensated (see :func:`precompensate`); Gray codes and white/black
     frames are binary and need none.
     """
-    from .scan import Scan, ScanManifest
+    from telefringe.fringes.scan import Scan, ScanManifest
 
     groups = pattern_groups(steps=steps, periods=periods, axes=axes, gray_bits=gray_bits,
                             complementary=complementary, offset=offset)

@@ -24,176 +24,17 @@ Forward model (per point ``X`` in world mm)::
 ``k1`` is in 1/mm^2, ``s1`` and ``s2`` in 1/mm (sensor plane).
 """
 
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = [
-    "ConvergenceError",
-    "Intrinsics",
-    "TelecentricDevice",
-    "Rig",
-    "rotation_from_rotvec",
-    "rotvec_from_rotation",
-    "distort_sensor",
-    "undistort_sensor",
-]
+from telefringe.geometry.distortion import distort_sensor, undistort_sensor
+from telefringe.geometry.so3 import rotation_from_rotvec, rotvec_from_rotation
 
-
-class ConvergenceError(ValueError):
-    """An iterative inversion (e.g. undistortion) did not converge."""
-
-
-def rotation_from_rotvec(rotvec) -> np.ndarray:
-    """Rodrigues: rotation vector (3,) in radians -> rotation matrix (3, 3).
-
-    Raises ``ValueError`` if ``rotvec`` is not 3 finite numbers.
-    """
-    r = np.asarray(rotvec, dtype=float)
-    if r.size != 3 or not np.all(np.isfinite(r)):
-        raise ValueError(f"rotvec must be 3 finite numbers (radians), got {rotvec!r}")
-    r = r.reshape(3)
-    theta = float(np.linalg.norm(r))
-    K = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
-    if theta < 1e-12:
-        return np.eye(3) + K
-    K = K / theta
-    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
-
-
-def rotvec_from_rotation(R) -> np.ndarray:
-    """Inverse Rodrigues: rotation matrix (3, 3) -> rotation vector (3,) in radians.
-
-    The angle (the vector's norm) is in [0, pi]. Accurate to rounding error at every
-    angle, including near 0 and pi (the angle comes from ``atan2(sin, cos)``; near pi the
-    axis comes from the symmetric part of ``R``). At exactly pi the sign of the axis is
-    arbitrary (both give the same rotation). Raises ``ValueError`` if ``R`` is not a
-    proper rotation.
-    """
-    R = np.asarray(R, dtype=float)
-    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
-        raise ValueError("R must be a finite (3, 3) array")
-    if not np.allclose(R @ R.T, np.eye(3), rtol=0.0, atol=1e-6) or np.linalg.det(R) < 0:
-        raise ValueError("R is not a proper rotation (R R^T != I or det < 0)")
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # 2 sin(t) axis
-    sin_t = 0.5 * float(np.linalg.norm(w))
-    cos_t = 0.5 * (float(np.trace(R)) - 1.0)
-    theta = float(np.arctan2(sin_t, cos_t))
-    if cos_t > -0.7:
-        # w is well conditioned here (sin_t / theta >= 0.55); theta / sin(theta) -> 1 at 0
-        return (0.5 if sin_t == 0.0 else theta / (2.0 * sin_t)) * w
-    # near pi: the symmetric part is cos(t) I + (1 - cos(t)) a a^T
-    aaT = (0.5 * (R + R.T) - cos_t * np.eye(3)) / (1.0 - cos_t)
-    i = int(np.argmax(np.diag(aaT)))
-    axis = aaT[:, i] / np.sqrt(aaT[i, i])
-    axis /= np.linalg.norm(axis)
-    if np.dot(axis, w) < 0:
-        axis = -axis
-    return theta * axis
-
-
-def distort_sensor(xu, yu, k1: float, s1: float, s2: float):
-    """Apply radial + thin-prism distortion on the sensor plane.
-
-    Parameters
-    ----------
-    xu, yu : ndarray of float, any (broadcastable) shape
-        Undistorted sensor coordinates in mm, relative to the principal point.
-    k1 : float   radial coefficient, 1/mm^2.
-    s1, s2 : float   thin-prism coefficients, 1/mm.
-
-    Returns
-    -------
-    xd, yd : ndarray of float, same shape, distorted sensor mm.
-    """
-    xu = np.asarray(xu, dtype=float)
-    yu = np.asarray(yu, dtype=float)
-    r2 = xu * xu + yu * yu
-    return xu + k1 * xu * r2 + s1 * r2, yu + k1 * yu * r2 + s2 * r2
-
-
-def undistort_sensor(xd, yd, k1: float, s1: float, s2: float, *, tol: float = 1e-12,
-                     max_iter: int = 50):
-    """Invert :func:`distort_sensor` by Newton's method.
-
-    Parameters
-    ----------
-    xd, yd : ndarray of float, any (broadcastable) shape, distorted sensor mm.
-    k1, s1, s2 : float, distortion coefficients (see :func:`distort_sensor`).
-    tol : float
-        Convergence tolerance in mm on the residual of the forward model (default
-        1e-12 mm, i.e. 2e-10 px for a 5 um pixel).
-
-    Returns
-    -------
-    xu, yu : ndarray of float, undistorted sensor mm.
-
-    Raises
-    ------
-    ConvergenceError
-        If any finite input point does not converge, or converges only to a root
-        beyond the fold of the distortion (where the forward map is not invertible).
-        Non-finite inputs give non-finite outputs (NaN stays NaN).
-    """
-    xd, yd = np.broadcast_arrays(np.asarray(xd, dtype=float), np.asarray(yd, dtype=float))
-    xu = xd.copy()
-    yu = yd.copy()
-    if k1 == 0.0 and s1 == 0.0 and s2 == 0.0:
-        return xu, yu
-    finite = np.isfinite(xd) & np.isfinite(yd)
-    # the residual cannot be smaller than the rounding of the forward model
-    thresh = np.maximum(tol, 64.0 * np.finfo(float).eps * (np.abs(xd) + np.abs(yd)))
-
-    def jacobian(xu, yu, r2):
-        a = 1.0 + k1 * (r2 + 2.0 * xu * xu) + 2.0 * s1 * xu
-        b = 2.0 * k1 * xu * yu + 2.0 * s1 * yu
-        c = 2.0 * k1 * xu * yu + 2.0 * s2 * xu
-        d = 1.0 + k1 * (r2 + 2.0 * yu * yu) + 2.0 * s2 * yu
-        return a, b, c, d
-
-    # diverging points (no inverse) may overflow; they are reported below, not warned
-    with np.errstate(all="ignore"):
-        for _ in range(max_iter):
-            r2 = xu * xu + yu * yu
-            fx = xu + k1 * xu * r2 + s1 * r2 - xd
-            fy = yu + k1 * yu * r2 + s2 * r2 - yd
-            a, b, c, d = jacobian(xu, yu, r2)
-            det = a * d - b * c
-            dx = (d * fx - b * fy) / det
-            dy = (-c * fx + a * fy) / det
-            xu = xu - dx
-            yu = yu - dy
-            err = np.abs(fx) + np.abs(fy)
-            if not np.any((err > thresh)[finite]):
-                break
-        r2 = xu * xu + yu * yu
-        res = (np.abs(xu + k1 * xu * r2 + s1 * r2 - xd)
-               + np.abs(yu + k1 * yu * r2 + s2 * r2 - yd))
-        a, b, c, d = jacobian(xu, yu, r2)
-        # A root where the forward map is folded (det <= 0) or flipped (trace <= 0) is
-        # not the inverse: it lies beyond the fold of the distortion, e.g. the mirrored
-        # outer root of a strong barrel distortion.
-        unfolded = (a * d - b * c > 0) & (a + d > 0)
-    diverged = finite & ~(res <= 10.0 * thresh)
-    folded = finite & ~diverged & ~unfolded
-    if np.any(diverged) or np.any(folded):
-        parts = []
-        if np.any(diverged):
-            worst = np.where(np.isnan(res), np.inf, res)[diverged].max()
-            parts.append(f"{int(np.count_nonzero(diverged))} did not converge (worst residual "
-                         f"{float(worst):.3g} mm)")
-        if np.any(folded):
-            parts.append(f"{int(np.count_nonzero(folded))} only have a solution beyond the "
-                         "fold of the distortion")
-        raise ConvergenceError(
-            f"undistortion failed for {int(np.count_nonzero(diverged | folded))} of "
-            f"{int(np.count_nonzero(finite))} point(s): {' and '.join(parts)}. The distortion "
-            f"(k1={k1:g} 1/mm^2, s1={s1:g}, s2={s2:g} 1/mm) is not invertible there; check "
-            "the coefficients or keep to the image area"
-        )
-    return xu, yu
+__all__ = ["Intrinsics", "TelecentricDevice"]
 
 
 @dataclass(frozen=True)
@@ -382,15 +223,3 @@ class TelecentricDevice:
         R = self.R_dev_world
         origin = a[..., None] * R[0] + b[..., None] * R[1]
         return origin, R[2].copy()
-
-
-@dataclass(frozen=True, eq=False)
-class Rig:
-    """A telecentric camera and projector expressed in one world frame (mm).
-
-    The world frame of a calibrated rig is the calibration target at its reference pose
-    (x along the grid's columns, y along its rows, z toward the camera).
-    """
-
-    camera: TelecentricDevice
-    projector: TelecentricDevice

@@ -1,5 +1,5 @@
 """Numba kernels of the projector-nonlinearity model (private; used by
-:mod:`telefringe.gamma`). No fastmath; ``cache=True``.
+:mod:`telefringe.fringes.nonlinearity`). No fastmath; ``cache=True``.
 
 Harmonics ``cos(m phi), sin(m phi)`` come from the complex recurrence
 ``exp(i m phi) = exp(i (m-1) phi) exp(i phi)`` (one sin/cos per sample; rounding error grows

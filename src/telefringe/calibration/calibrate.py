@@ -1,6 +1,6 @@
 """Calibration of telecentric devices and of a telecentric camera-projector rig.
 
-The camera and the projector share one model (:mod:`telefringe.model`); the projector
+The camera and the projector share one model (:mod:`telefringe.devices.telecentric`); the projector
 is an inverse camera whose "image" of each circle centre is read from the phase maps
 (:func:`telefringe.targets.projector_observations`).
 
@@ -55,7 +55,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import Intrinsics, Rig, TelecentricDevice, rotation_from_rotvec
+from telefringe.devices.rig import Rig
+from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
+from telefringe.geometry.so3 import (
+    chordal_mean,
+    left_jacobian,
+    project_to_rotation,
+    rotation_from_rotvec,
+    skew,
+)
 
 __all__ = [
     "INTRINSIC_NAMES",
@@ -84,33 +92,6 @@ _D = np.diag([1.0, 1.0, -1.0])
 
 class CalibrationError(ValueError):
     """Calibration cannot proceed: too few poses, degenerate views, no convergence."""
-
-
-# --------------------------------------------------------------------------- rotations
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices."""
-    v = np.asarray(v, dtype=float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
-
-
-def _left_jacobian(w: np.ndarray) -> np.ndarray:
-    """Left Jacobian of SO(3) at rotation vector ``w`` (3,): d(R(w) x)/dw = -[R x]_x J_l."""
-    th = float(np.linalg.norm(w))
-    K = _skew(w)
-    if th < 1e-6:
-        return np.eye(3) + 0.5 * K + (K @ K) / 6.0
-    return (np.eye(3) + (1.0 - np.cos(th)) / th**2 * K
-            + (th - np.sin(th)) / th**3 * (K @ K))
-
-
-def _project_to_rotation(M: np.ndarray) -> np.ndarray:
-    """Nearest proper rotation (Frobenius) to a 3 x 3 matrix."""
-    U, _, Vt = np.linalg.svd(M)
-    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    return U @ S @ Vt
 
 
 def mirror_pose(R: np.ndarray) -> np.ndarray:
@@ -246,10 +227,10 @@ class _Problem:
             uv, (J_q, J_t, J_Y, Y, RP, Rdev, devp, pose) = self.predict(x, d)
             s = self.sigmas[d]
             res.append(((uv - o.uv) / s).ravel())
-            J_dw = J_Y @ (-_skew(Y)) @ _left_jacobian(devp[6:9])
+            J_dw = J_Y @ (-skew(Y)) @ left_jacobian(devp[6:9])
             J_X = J_Y @ Rdev
-            Jl_pose = np.array([_left_jacobian(pose[i, :3]) for i in range(self.n_pose)])
-            J_pw = J_X @ (-_skew(RP)) @ Jl_pose[o.pose]
+            Jl_pose = np.array([left_jacobian(pose[i, :3]) for i in range(self.n_pose)])
+            J_pw = J_X @ (-skew(RP)) @ Jl_pose[o.pose]
             blocks = np.concatenate([J_q, J_dw, J_t, J_pw, J_X], axis=2) / s  # (n, 2, 17)
             c_dev = 11 * d + np.arange(11)
             c_pose = 11 * self.n_dev + 6 * o.pose[:, None] + np.arange(6)[None, :]
@@ -499,7 +480,7 @@ def closed_form_device(points_target, observations, *, pixel_size, principal_poi
         Ue[:2, :2] = U
         Ve = np.eye(3)
         Ve[:2, :2] = V
-        R = _project_to_rotation(Ue @ Rx @ Ve.T)
+        R = project_to_rotation(Ue @ Rx @ Ve.T)
         if R[0, 2] < 0 or (R[0, 2] == 0 and R[1, 2] < 0):
             R = mirror_pose(R)
         Rs[i] = R
@@ -859,10 +840,6 @@ class RigCalibration:
         return float(self.std[RIG_PARAMETER_NAMES.index(name)])
 
 
-def _chordal_mean(Rs) -> np.ndarray:
-    return _project_to_rotation(np.sum(np.asarray(Rs), axis=0))
-
-
 def _choose_branches(Rc, Rp):
     """Per pose mirror branch of camera and projector keeping R_proj_cam rigid.
 
@@ -990,7 +967,7 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
         raise CalibrationError(f"{len(poses)} pose(s) seen by both devices, at least "
                                f"{min_poses} needed")
     Rc, Rp = _choose_branches(cal_c.R_dev_target[poses], cal_p.R_dev_target[poses])
-    R_pc = _chordal_mean(Rp @ np.transpose(Rc, (0, 2, 1)))
+    R_pc = chordal_mean(Rp @ np.transpose(Rc, (0, 2, 1)))
     if _mirror_needed(R_pc, projector_side):
         Rc, Rp, R_pc = mirror_pose(Rc), mirror_pose(Rp), mirror_pose(R_pc)
     if projector_side is None:
@@ -1010,7 +987,7 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
             "cannot be calibrated; tilt the target in several directions")
     R_cw = Rc[0]
     R_pw = R_pc @ R_cw
-    R_wt = np.array([_chordal_mean([R_cw.T @ Rc[j], R_pw.T @ Rp[j]])
+    R_wt = np.array([chordal_mean([R_cw.T @ Rc[j], R_pw.T @ Rp[j]])
                      for j in range(len(poses))])
     R_wt[0] = np.eye(3)
     t_c = cal_c.t_dev[poses]
@@ -1152,8 +1129,9 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
     CalibrationError
         Fewer than ``min_poses`` good poses, or the reference pose is not good.
     """
-    from .decode import decode
-    from .targets import detect_circle_grid, fringe_free_image, projector_observations
+    from telefringe.fringes.decode import decode
+    from telefringe.fringes.images import fringe_free_image
+    from telefringe.targets.circle_grid import detect_circle_grid, projector_observations
 
     rows, cols = int(target.rows), int(target.cols)
     r, c = np.mgrid[0:rows, 0:cols]
@@ -1220,7 +1198,7 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
         return calib
     from dataclasses import replace
 
-    from .gamma import mean_model
+    from telefringe.fringes.nonlinearity import mean_model
 
     return replace(calib, phase_errors={k: mean_model(v) for k, v in sorted(learned.items())})
 
@@ -1228,7 +1206,7 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
 def _learned_models(scan, coords) -> dict:
     """The nonlinearity models a decode learned from ``scan``: ``(axis, periods, steps) ->
     PhaseErrorModel`` (models given to the decoder or not learned are left out)."""
-    from .scan import PhaseGroup
+    from telefringe.fringes.scan import PhaseGroup
 
     out = {}
     for axis, ax in (getattr(coords, "axes", None) or {}).items():

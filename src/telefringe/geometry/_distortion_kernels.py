@@ -1,6 +1,6 @@
 """Compiled scalar inversion of the sensor distortion, shared by the reconstruction
 and the virtual rig (the same Newton iteration, tolerance and fold checks as
-:func:`telefringe.model.undistort_sensor`)."""
+:func:`telefringe.geometry.distortion.undistort_sensor`)."""
 
 from __future__ import annotations
 
@@ -25,7 +25,8 @@ def distortion_residual(xu, yu, xd, yd, k1, s1, s2):
 
 @numba.njit(cache=True, nogil=True)
 def undistort_point(xd, yd, k1, s1, s2):
-    """Newton inversion of the sensor distortion at one point (as model.undistort_sensor).
+    """Newton inversion of the sensor distortion at one point (as
+    :func:`telefringe.geometry.distortion.undistort_sensor`).
 
     Returns (xu, yu, ok): ok is False where it does not converge or converges beyond the
     fold of the distortion.

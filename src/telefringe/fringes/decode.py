@@ -2,8 +2,8 @@
 
 Per axis: N-step wrapped phase of each group (HDR sets fused per pixel), masks
 (saturation, low modulation, shadow), the projector nonlinearity learned from the
-ladder and removed (:mod:`telefringe.gamma`), temporal unwrapping
-(:mod:`telefringe.unwrap`), and the projector coordinate ``x = Phi L / (2 pi p)``.
+ladder and removed (:mod:`telefringe.fringes.nonlinearity`), temporal unwrapping
+(:mod:`telefringe.fringes.unwrap`), and the projector coordinate ``x = Phi L / (2 pi p)``.
 
 Uncertainty: each group's phase has ``sigma_phi = sqrt(2/N) sigma_I / B`` with
 ``sigma_I`` from the :class:`~telefringe.phase.NoiseModel` at the background level, i.e.
@@ -19,8 +19,8 @@ rad, float32 unwrapping, the finest group's absolute phase and the result in flo
 within 1e-4 px of the float64 path, masks and diagnostics equal, tested in
 tests/test_decode_fast.py). ``decode(..., exact=True)`` and the other methods
 (heterodyne, number-theoretic, Gray code) use float64 NumPy with ``numpy.arctan2``. When
-the nonlinearity is learned, the fit (telefringe.gamma) uses the float64 phases and the
-fused kernel applies the correction through its tables.
+the nonlinearity is learned, the fit (telefringe.fringes.nonlinearity) uses the float64
+phases and the fused kernel applies the correction through its tables.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .gamma import PhaseErrorFit, PhaseErrorModel, fit_phase_errors
-from .phase import (
+from telefringe.fringes.nonlinearity import PhaseErrorFit, PhaseErrorModel, fit_phase_errors
+from telefringe.fringes.phase import (
     NoiseModel,
     WrappedPhase,
     fuse_hdr,
@@ -39,8 +39,8 @@ from .phase import (
     saturation_mask,
     wrapped_phase,
 )
-from .scan import GrayGroup, PhaseGroup, Scan, ScanManifest
-from .unwrap import (
+from telefringe.fringes.scan import GrayGroup, PhaseGroup, Scan, ScanManifest
+from telefringe.fringes.unwrap import (
     LadderError,
     Unwrapped,
     heterodyne_plan,
@@ -241,7 +241,7 @@ def choose_method(periods, *, length: int, gray_bits: int | None = None,
         if m == "number-theoretic":
             if len(per) < 2:
                 return False
-            from .unwrap import _projected_separation
+            from telefringe.fringes.unwrap import _projected_separation
 
             cands = number_theoretic_candidates(per, length=length)
             return _projected_separation(cands, np.asarray(per, float)) > 1e-9
@@ -693,7 +693,7 @@ _MAX_MEMBERS = 16  # phase groups (exposures included) per axis in the fused ker
 def _weights(steps: int, offset: float):
     """N-step weights (cos, sin, second-harmonic cos, sin; read-only) and whether they are
     all 0, +-1/2 or +-1."""
-    from .phase import phase_shift_coefficients
+    from telefringe.fringes.phase import phase_shift_coefficients
 
     c, s = phase_shift_coefficients(steps, offset)
     c2, s2 = phase_shift_coefficients(steps, 2.0 * offset, harmonic=2)
@@ -712,7 +712,7 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     group's exposures (any order). periods, steps, offsets : per level. models : per level
     PhaseErrorModel or None. Returns the output arrays by name.
     """
-    from . import _kernels as _k
+    from telefringe.fringes import _kernels as _k
 
     n_lev = len(levels)
     members = []

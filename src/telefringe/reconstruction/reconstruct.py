@@ -49,8 +49,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from ._distortion import distortion_residual, undistort_point
-from .model import Rig, TelecentricDevice, undistort_sensor
+from telefringe.devices.rig import Rig
+from telefringe.devices.telecentric import TelecentricDevice
+from telefringe.geometry._distortion_kernels import distortion_residual, undistort_point
+from telefringe.geometry.distortion import undistort_sensor
 
 __all__ = [
     "TriangulationError",
@@ -94,7 +96,7 @@ def _as_rig(rig) -> Rig:
     inner = getattr(rig, "rig", None)
     if isinstance(inner, Rig):
         return inner
-    raise TriangulationError(f"expected a telefringe.model.Rig, got {type(rig).__name__}")
+    raise TriangulationError(f"expected a telefringe.devices.rig.Rig, got {type(rig).__name__}")
 
 
 def _readonly(a):
@@ -517,7 +519,7 @@ def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, co
     inside = ((up_pred >= -0.5) & (up_pred <= kp[7] - 0.5) & (vp_pred >= -0.5)
               & (vp_pred <= kp[8] - 0.5))
     # a solution where the projector's distortion is folded is not the inverse (as in
-    # telefringe.model.undistort_sensor): count it as not converged
+    # telefringe.geometry.distortion.undistort_sensor): count it as not converged
     k1 = kp[4]
     xu = Au + kp[11] * s
     yu = Av + kp[14] * s
@@ -714,7 +716,7 @@ def _solve_slow(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max
 
 
 def _undistort(xd, yd, k1, s1, s2):
-    """:func:`telefringe.model.undistort_sensor` (same Newton iteration, tolerance and
+    """:func:`telefringe.geometry.distortion.undistort_sensor` (same Newton iteration, tolerance and
     error), compiled and parallel: the per-rig set-up of a full image in milliseconds."""
     xd = np.ascontiguousarray(xd, dtype=np.float64)
     yd = np.ascontiguousarray(yd, dtype=np.float64)
@@ -755,7 +757,8 @@ def _unfolded_radius2(k1, s1, s2) -> float:
     With r^2 = xu^2 + yu^2 and s = max(|s1|, |s2|), the Jacobian of the distortion has
     diagonal terms >= 1 - 3|k1| r^2 - 2 s r and off-diagonal ones <= |k1| r^2 + 2 s r in
     magnitude, so its determinant and trace are positive (the fold check of
-    :func:`telefringe.model.undistort_sensor` passes) while 4 |k1| r^2 + 4 s r < 1. The
+    :func:`telefringe.geometry.distortion.undistort_sensor` passes) while
+    4 |k1| r^2 + 4 s r < 1. The
     radius returned is 0.99 of that bound's root (inf without distortion).
     """
     k = abs(float(k1))
@@ -783,8 +786,9 @@ def _grid_lines_kernel(u0, v0, du, dv, k1, s1, s2, m, t0, t1, a,
     # Triangulator.for_pixels on the full pixel grid, fused (pixel -> distorted sensor mm
     # -> undistorted -> line offsets a, b). The undistortion: from the first-order inverse,
     # _N_UNDISTORT Newton steps with no data-dependent branch (the row vectorises), then
-    # the acceptance test of telefringe.model.undistort_sensor, tightened to its stopping
-    # tolerance; the pixels that fail it are redone with the iterating undistort_point.
+    # the acceptance test of telefringe.geometry.distortion.undistort_sensor, tightened to
+    # its stopping tolerance; the pixels that fail it are redone with the iterating
+    # undistort_point.
     rows, cols = a.shape
     n_bad = 0
     for r in prange(rows):
@@ -1208,7 +1212,7 @@ def scan_radiance(scan) -> np.ndarray:
     ValueError
         When the scan has no phase images.
     """
-    from .scan import PhaseGroup
+    from telefringe.fringes.scan import PhaseGroup
 
     sums: dict[float, np.ndarray] = {}
     counts: dict[float, int] = {}
@@ -1257,8 +1261,8 @@ def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
     telefringe.decode.DecodeError
         When the scan cannot be decoded.
     """
-    from .decode import decode
-    from .targets import fringe_free_image
+    from telefringe.fringes.decode import decode
+    from telefringe.fringes.images import fringe_free_image
 
     learned = getattr(rig, "phase_errors", None)  # a RigCalibration's projector model
     if learned and "phase_errors" not in decode_options:

@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .reconstruct import PointCloud
+from telefringe.reconstruction.reconstruct import PointCloud
 
 __all__ = [
     "MetrologyError",

@@ -1,0 +1,1 @@
+"""Calibration of devices and rigs: bundle adjustment, closed-form starts, uncertainty."""

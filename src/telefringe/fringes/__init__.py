@@ -1,0 +1,2 @@
+"""Images -> projector coordinates: the scan in memory, patterns, wrapped phase, temporal
+unwrapping, the projector nonlinearity (gamma), decoding and its fast kernels."""

@@ -1,0 +1,1 @@
+"""Pure maths with no devices: rotations (so3), distortion models, rays."""

@@ -1,0 +1,1 @@
+"""Measurements on point clouds: planes, marker spacing, spheres, steps, BGAs."""

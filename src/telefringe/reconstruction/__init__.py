@@ -1,0 +1,1 @@
+"""Point clouds from decoded scans: triangulation, height maps, the scan pipeline."""
