@@ -31,10 +31,19 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from telefringe.devices.base import ROTATION_NAMES
 from telefringe.geometry.distortion import distort_sensor, undistort_sensor
-from telefringe.geometry.so3 import rotation_from_rotvec, rotvec_from_rotation
+from telefringe.geometry.rays import Rays
+from telefringe.geometry.so3 import rotation_from_rotvec, rotvec_from_rotation, skew
 
-__all__ = ["Intrinsics", "TelecentricDevice"]
+__all__ = ["INTRINSIC_NAMES", "POSE_NAMES", "Intrinsics", "TelecentricDevice"]
+
+#: The intrinsic parameters of a telecentric device (:meth:`TelecentricDevice.to_params`):
+#: magnification, principal point (px), radial (1/mm^2) and thin-prism (1/mm) distortion.
+INTRINSIC_NAMES = ("m", "u0", "v0", "k1", "s1", "s2")
+#: Its pose parameters: a left rotation perturbation (rad) and the in-plane translation
+#: (mm); no tz, depth along the axis does not change the image.
+POSE_NAMES = ROTATION_NAMES + ("tx", "ty")
 
 
 @dataclass(frozen=True)
@@ -96,6 +105,8 @@ class Intrinsics:
 class TelecentricDevice:
     """A telecentric camera or projector: intrinsics and pose.
 
+    Implements the :class:`~telefringe.devices.base.Device` protocol.
+
     Attributes
     ----------
     intrinsics : Intrinsics
@@ -106,6 +117,8 @@ class TelecentricDevice:
     intrinsics: Intrinsics
     R_dev_world: np.ndarray = field(default_factory=lambda: np.eye(3))
     t_dev: np.ndarray = field(default_factory=lambda: np.zeros(2))
+
+    model = "telecentric"
 
     def __post_init__(self):
         R = np.array(self.R_dev_world, dtype=float)
@@ -201,7 +214,7 @@ class TelecentricDevice:
         return self.sensor_to_pixel(xu, yu)
 
     # -- backward -------------------------------------------------------------
-    def backproject(self, u, v):
+    def backproject(self, u, v) -> Rays:
         """Pixels -> world lines.
 
         Parameters
@@ -210,10 +223,14 @@ class TelecentricDevice:
 
         Returns
         -------
-        origin : (..., 3) ndarray, mm, the point of each line closest to the world
-            origin's axis line (the point with zero depth along the device axis).
-        direction : (3,) ndarray, unit viewing direction in world coordinates (the same
-            for every pixel: the device is telecentric).
+        Rays
+            ``origin`` (..., 3) mm, the point of each line with zero depth along the
+            device axis (the line's point nearest the world origin's axis line);
+            ``direction`` (3,), the unit viewing direction in world coordinates, the same
+            for every pixel (the device is telecentric). Unpacks as ``origin, direction``.
+
+        Raises :class:`~telefringe.geometry.distortion.ConvergenceError` where the
+        distortion cannot be inverted.
         """
         xd, yd = self.pixel_to_sensor(u, v)
         xu, yu = undistort_sensor(xd, yd, *self.intrinsics.distortion)
@@ -222,4 +239,90 @@ class TelecentricDevice:
         b = yu / m - self.t_dev[1]
         R = self.R_dev_world
         origin = a[..., None] * R[0] + b[..., None] * R[1]
-        return origin, R[2].copy()
+        return Rays(origin, R[2])
+
+    # -- parameters (the Device protocol) ---------------------------------------
+    @property
+    def image_size(self) -> tuple[int, int] | None:
+        """(width, height) px, or None where the intrinsics do not give it."""
+        k = self.intrinsics
+        return (k.width, k.height) if k.width > 0 and k.height > 0 else None
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """``INTRINSIC_NAMES + POSE_NAMES``: (m, u0, v0, k1, s1, s2, rot_x, rot_y, rot_z,
+        tx, ty)."""
+        return INTRINSIC_NAMES + POSE_NAMES
+
+    intrinsic_names = INTRINSIC_NAMES
+    pose_names = POSE_NAMES
+    principal_point_names = ("u0", "v0")
+    distortion_names = ("k1", "s1", "s2")
+    sees_depth = False
+
+    def to_params(self) -> np.ndarray:
+        """(11,) ndarray: m, u0 (px), v0 (px), k1 (1/mm^2), s1, s2 (1/mm), a zero
+        rotation vector (rad), tx, ty (mm)."""
+        k = self.intrinsics
+        return np.array([k.m, k.u0, k.v0, k.k1, k.s1, k.s2, 0.0, 0.0, 0.0,
+                         self.t_dev[0], self.t_dev[1]])
+
+    def from_params(self, params) -> TelecentricDevice:
+        """This device with the parameters ``params`` (11,) (see :meth:`to_params`); the
+        pixel pitch and the image size are kept. Raises ``ValueError`` for a wrong
+        length or invalid values (e.g. m <= 0)."""
+        p = np.asarray(params, dtype=float).reshape(-1)
+        if p.shape != (len(self.param_names),):
+            raise ValueError(f"params must have {len(self.param_names)} values "
+                             f"({', '.join(self.param_names)}), got {p.size}")
+        intr = replace(self.intrinsics, m=float(p[0]), u0=float(p[1]), v0=float(p[2]),
+                       k1=float(p[3]), s1=float(p[4]), s2=float(p[5]))
+        R = rotation_from_rotvec(p[6:9]) @ self.R_dev_world
+        return TelecentricDevice(intr, R, p[9:11])
+
+    def project_jacobian(self, points_world):
+        """Projection of ``points_world`` (n, 3) mm and its derivatives.
+
+        Returns
+        -------
+        uv : (n, 2) ndarray, px.
+        J_params : (n, 2, 11) ndarray, d(u, v)/d(:meth:`to_params`), the rotation as a
+            left perturbation of ``R_dev_world`` at zero.
+        J_points : (n, 2, 3) ndarray, d(u, v)/d(points_world), px/mm.
+        """
+        X = np.asarray(points_world, dtype=float)
+        if X.ndim != 2 or X.shape[1] != 3:
+            raise ValueError(f"points_world must have shape (n, 3), got {X.shape}")
+        k = self.intrinsics
+        m, u0, v0, k1, s1, s2, du, dv = k.m, k.u0, k.v0, k.k1, k.s1, k.s2, k.du, k.dv
+        R = self.R_dev_world
+        Y = X @ R.T
+        a = Y[:, 0] + self.t_dev[0]
+        b = Y[:, 1] + self.t_dev[1]
+        xu = m * a
+        yu = m * b
+        r2 = xu * xu + yu * yu
+        xd = xu + k1 * xu * r2 + s1 * r2
+        yd = yu + k1 * yu * r2 + s2 * r2
+        uv = np.stack([u0 + xd / du, v0 + yd / dv], axis=1)
+        n = X.shape[0]
+        # distortion Jacobian d(xd, yd)/d(xu, yu), scaled to pixels
+        G = np.empty((n, 2, 2))
+        G[:, 0, 0] = (1.0 + k1 * (r2 + 2.0 * xu * xu) + 2.0 * s1 * xu) / du
+        G[:, 0, 1] = (2.0 * k1 * xu * yu + 2.0 * s1 * yu) / du
+        G[:, 1, 0] = (2.0 * k1 * xu * yu + 2.0 * s2 * xu) / dv
+        G[:, 1, 1] = (1.0 + k1 * (r2 + 2.0 * yu * yu) + 2.0 * s2 * yu) / dv
+        J = np.zeros((n, 2, 11))
+        J[:, :, 0] = G[:, :, 0] * a[:, None] + G[:, :, 1] * b[:, None]
+        J[:, 0, 1] = 1.0
+        J[:, 1, 2] = 1.0
+        J[:, 0, 3] = xu * r2 / du
+        J[:, 1, 3] = yu * r2 / dv
+        J[:, 0, 4] = r2 / du
+        J[:, 1, 5] = r2 / dv
+        J_t = m * G  # d(u, v)/d(tx, ty) = d(u, v)/d(Y_x, Y_y); Y_z is not seen
+        J_Y = np.zeros((n, 2, 3))
+        J_Y[:, :, :2] = J_t
+        J[:, :, 6:9] = J_Y @ (-skew(Y))  # d Y / d rot = -[Y]x at a zero perturbation
+        J[:, :, 9:11] = J_t
+        return uv, J, J_Y @ R
