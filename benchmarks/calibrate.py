@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from telefringe.calibration.calibrate import calibrate_rig
+from telefringe.calibration.rig import calibrate_rig
 from telefringe.fringes.decode import decode
 from telefringe.fringes.images import fringe_free_image
 from telefringe.simulate.calibration import iter_calibration_set, simulate_calibration_poses

@@ -12,15 +12,12 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-import telefringe.calibration.calibrate as C
-from telefringe.calibration.calibrate import (
-    RIG_PARAMETER_NAMES,
-    CalibrationError,
-    calibrate_device,
-    calibrate_rig,
-    closed_form_device,
-    mirror_pose,
-)
+from telefringe.calibration.device import _obs_from_array, calibrate_device
+from telefringe.calibration.errors import CalibrationError
+from telefringe.calibration.problem import BundleProblem
+from telefringe.calibration.rig import calibrate_rig
+from telefringe.calibration.solver import levenberg_marquardt
+from telefringe.calibration.start_telecentric import closed_form_device, mirror_pose
 from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
 from telefringe.geometry.so3 import left_jacobian, rotation_from_rotvec, skew
@@ -107,7 +104,8 @@ def side_of(rig: Rig) -> str:
 
 
 def rig_truth_vector(rig: Rig) -> np.ndarray:
-    """True rig parameters in the order of RIG_PARAMETER_NAMES (rotations: zeros)."""
+    """True rig parameters in the order of RigCalibration.parameter_names (rotations:
+    zeros), written out here rather than taken from the device's to_params."""
     out = []
     for d in (rig.camera, rig.projector):
         k = d.intrinsics
@@ -122,7 +120,8 @@ def rig_errors(calib, truth: Rig) -> np.ndarray:
                                     (calib.rig.projector, truth.projector))):
         dR = tru.R_dev_world @ est.R_dev_world.T  # truth = dR est
         w = 0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])
-        err[11 * j + 6: 11 * j + 9] = -w
+        i = calib.parameter_names.index(f"{('camera', 'projector')[j]}.rot_x")
+        err[i:i + 3] = -w
     return err
 
 
@@ -173,16 +172,13 @@ def _joint_problem(scene, *, poses=range(12)):
     poses = list(poses)
     rig = scene["rig"]
     keep = np.ones(scene["cam"].shape[:2], dtype=bool)
-    obs = [C._obs_from_array(scene["cam"], poses, keep),
-           C._obs_from_array(scene["proj"], poses, keep)]
-    q = [C._q_of(rig.camera.intrinsics), C._q_of(rig.projector.intrinsics)]
-    free = np.ones(22 + 6 * len(poses), dtype=bool)
-    free[22:28] = False
-    return C._Problem(scene["P"], obs, [CAM_PIX, PROJ_PIX], q,
-                      [rig.camera.R_dev_world, rig.projector.R_dev_world],
-                      [rig.camera.t_dev, rig.projector.t_dev], scene["Rs"][poses],
-                      scene["Ts"][poses], free, [SIGMA_CAM, SIGMA_PROJ],
-                      [(1, 639.5, 800.0), (12, 399.5, 500.0)])
+    obs = [_obs_from_array(scene["cam"], poses, keep),
+           _obs_from_array(scene["proj"], poses, keep)]
+    free = np.ones(22 + 6 * len(poses), dtype=bool)  # 11 per device, 6 per pose
+    free[22:28] = False  # the reference pose
+    return BundleProblem(scene["P"], obs, [rig.camera, rig.projector], scene["Rs"][poses],
+                         scene["Ts"][poses], sigmas=[SIGMA_CAM, SIGMA_PROJ], free=free,
+                         priors=[("camera.u0", 639.5, 800.0), ("projector.u0", 399.5, 500.0)])
 
 
 def test_analytic_jacobian_matches_finite_differences(scene):
@@ -206,7 +202,7 @@ def test_levenberg_marquardt_reaches_the_scipy_minimum(scene):
     problem = _joint_problem(scene, poses=range(6))
     x0 = problem.x0 * (1 + 1e-4)
     problem.full0[problem.free] = x0
-    ours = C._levenberg_marquardt(problem._evaluate, x0)
+    ours = levenberg_marquardt(problem._evaluate, x0)
     ref = least_squares(problem.residuals, x0, jac=lambda x: problem.jacobian(x).toarray(),
                         method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=5000)
     cov, _ = problem.covariance(ref.x)
@@ -292,7 +288,7 @@ def test_rig_recovers_the_truth_within_its_uncertainty(scene, calibrated):
     cal = calibrated
     err = rig_errors(cal, scene["rig"])
     z = err / cal.std
-    bad = {n: round(float(v), 2) for n, v in zip(RIG_PARAMETER_NAMES, z, strict=True)
+    bad = {n: round(float(v), 2) for n, v in zip(calibrated.parameter_names, z, strict=True)
            if abs(v) > 5}
     assert not bad, bad
     assert cal.mirror == f"projector_side={side_of(scene['rig'])}"
@@ -376,7 +372,7 @@ def test_uncertainty_matches_monte_carlo():
     errs, stds = np.array(errs), np.array(stds)
     ratio = errs.std(axis=0) / stds.mean(axis=0)
     # sampling error of a standard deviation from 20 samples: about 16 % (bounds ~3.5 of it)
-    assert np.all((ratio > 0.55) & (ratio < 1.6)), dict(zip(RIG_PARAMETER_NAMES, ratio,
+    assert np.all((ratio > 0.55) & (ratio < 1.6)), dict(zip(cal.parameter_names, ratio,
                                                             strict=True))
     z2 = np.mean((errs / stds) ** 2)
     assert 0.7 < z2 < 1.35

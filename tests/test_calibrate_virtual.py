@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 from test_calibrate import triangulate
 
-from telefringe.calibration.calibrate import calibrate_from_scans, mirror_pose
+from telefringe.calibration.from_scans import calibrate_from_scans
+from telefringe.calibration.start_telecentric import mirror_pose
 from telefringe.fringes.decode import decode
 from telefringe.fringes.images import fringe_free_image
 from telefringe.geometry.so3 import rotation_from_rotvec

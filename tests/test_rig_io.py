@@ -21,7 +21,7 @@ from test_calibrate import (
     target_poses,
 )
 
-from telefringe.calibration.calibrate import calibrate_rig
+from telefringe.calibration.rig import calibrate_rig
 from telefringe.io.errors import InputError
 from telefringe.io.rig import RIG_FORMAT, load_rig, rig_from_json, rig_to_json, save_rig
 

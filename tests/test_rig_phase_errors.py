@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from telefringe.calibration.calibrate import calibrate_from_scans
+from telefringe.calibration.from_scans import calibrate_from_scans
 from telefringe.fringes.decode import decode
 from telefringe.fringes.nonlinearity import PhaseErrorModel, mean_model, periodic_error
 from telefringe.fringes.phase import wrapped_phase

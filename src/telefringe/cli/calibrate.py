@@ -36,25 +36,31 @@ def _fmt(v: float, s: float) -> str:
 
 
 def parameter_table(calib):
-    """A rich Table of both devices' parameters with their standard deviations."""
+    """A rich Table of both devices' parameters (by name) with their standard deviations."""
     from rich.table import Table
-
-    from telefringe.calibration.calibrate import INTRINSIC_NAMES
 
     table = Table(title="rig parameters (± one standard deviation)")
     table.add_column("parameter")
     table.add_column("unit")
     table.add_column("camera", justify="right")
     table.add_column("projector", justify="right")
-    p, s = calib.parameters, calib.std
-    for j, name in enumerate(INTRINSIC_NAMES):
-        table.add_row(name, _UNITS[name], _fmt(p[j], s[j]), _fmt(p[11 + j], s[11 + j]))
-    rc, rp = calib.rig.camera.rotvec, calib.rig.projector.rotvec
-    for j, ax in enumerate("xyz"):
-        table.add_row(f"rotation vector {ax}", "rad",
-                      _fmt(rc[j], s[6 + j]), _fmt(rp[j], s[17 + j]))
-    for j, name in enumerate(("tx", "ty")):
-        table.add_row(name, "mm", _fmt(p[9 + j], s[9 + j]), _fmt(p[20 + j], s[20 + j]))
+    devices = {"camera": calib.rig.camera, "projector": calib.rig.projector}
+    names = list(dict.fromkeys(n for d in devices.values() for n in d.param_names))
+
+    def cell(dname, pname):
+        dev = devices[dname]
+        if pname not in dev.param_names:
+            return "-"
+        i = calib.parameter_names.index(f"{dname}.{pname}")
+        value = calib.parameters[i]
+        if pname.startswith("rot_"):  # the rotation vector itself, not its perturbation
+            value = dev.rotvec["xyz".index(pname[-1])]
+        return _fmt(value, calib.std[i])
+
+    for name in names:
+        label = f"rotation vector {name[-1]}" if name.startswith("rot_") else name
+        unit = "rad" if name.startswith("rot_") else _UNITS.get(name, "mm")
+        table.add_row(label, unit, cell("camera", name), cell("projector", name))
     table.add_row("RMS reprojection", "px", f"{calib.rms_camera:.4f}",
                   f"{calib.rms_projector:.4f}")
     return table
@@ -161,7 +167,8 @@ def calibrate_cmd(
 
     Example: telefringe calibrate sim_cal/calibration -o rig.json --report cal_report
     """
-    from telefringe.calibration.calibrate import CalibrationError, calibrate_from_scans
+    from telefringe.calibration.errors import CalibrationError
+    from telefringe.calibration.from_scans import calibrate_from_scans
     from telefringe.io.atomic import atomic_dir, check_can_write
     from telefringe.io.errors import InputError
     from telefringe.io.rig import save_rig

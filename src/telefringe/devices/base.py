@@ -89,6 +89,11 @@ class Device(Protocol):
         """A device of the same model and known constants with parameters ``params``."""
         ...
 
+    def with_pose(self, R_dev_world, t_dev) -> Device:
+        """The same device at another pose: ``R_dev_world`` (3, 3), translation ``t_dev``
+        (the pose's translation parameters, mm)."""
+        ...
+
     def project_jacobian(self, points_world) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Projection and its derivatives at this device's parameters.
 

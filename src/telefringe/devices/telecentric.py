@@ -280,6 +280,11 @@ class TelecentricDevice:
         R = rotation_from_rotvec(p[6:9]) @ self.R_dev_world
         return TelecentricDevice(intr, R, p[9:11])
 
+    def with_pose(self, R_dev_world, t_dev) -> TelecentricDevice:
+        """This device at rotation ``R_dev_world`` (3, 3) and in-plane translation
+        ``t_dev`` (2,) mm."""
+        return TelecentricDevice(self.intrinsics, R_dev_world, t_dev)
+
     def project_jacobian(self, points_world):
         """Projection of ``points_world`` (n, 3) mm and its derivatives.
 

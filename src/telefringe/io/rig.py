@@ -21,8 +21,8 @@ the observations and the target poses). Layout::
         "sigma_px": {"camera": ..., "projector": ...},
         "principal_point": "estimate", "principal_point_weak": [false, false],
         "mirror": "projector_side=right",
-        "parameters": {"names": [...22], "values": [...], "std": [...],
-                       "covariance": [[...22] x 22]},
+        "parameters": {"names": ["camera.m", ...], "values": [...], "std": [...],
+                       "covariance": [[...] x n]},   # n = both devices' parameters
         "grid_shape": [9, 11], "points_target_mm": [[x, y, 0], ...],
         "poses": [{"name": "pose_00", "used": true, "rotation_vector": [...],
                    "t_mm": [...], "rms_px": [camera, projector]}, ...],
@@ -54,7 +54,8 @@ from pathlib import Path
 
 import numpy as np
 
-from telefringe.calibration.calibrate import RIG_PARAMETER_NAMES, Outlier, RigCalibration
+from telefringe.calibration.device import Outlier
+from telefringe.calibration.rig import RigCalibration, rig_parameter_names
 from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
 from telefringe.geometry.so3 import rotation_from_rotvec, rotvec_from_rotation
@@ -122,7 +123,7 @@ def rig_to_json(calib: RigCalibration) -> dict:
         "principal_point": calib.principal_point,
         "principal_point_weak": [bool(v) for v in calib.principal_point_weak],
         "mirror": calib.mirror,
-        "parameters": {"names": list(RIG_PARAMETER_NAMES), "values": _arr(calib.parameters),
+        "parameters": {"names": list(calib.parameter_names), "values": _arr(calib.parameters),
                        "std": _arr(calib.std), "covariance": _arr(calib.covariance)},
         "grid_shape": list(calib.grid_shape) if calib.grid_shape is not None else None,
         "points_target_mm": _arr(calib.points_target),
@@ -293,13 +294,15 @@ def rig_from_json(doc, *, where: str = "rig.json") -> RigCalibration:
         r.fail("world_frame.reference_pose", f"must be a string, got {ref!r}")
     phase_errors = _phase_errors(r, doc.get("phase_errors"))
     rep = doc.get("calibration")
+    expected = rig_parameter_names(rig)
+    n = len(expected)
     if rep is None:
-        n = 22
         return RigCalibration(
             rig=rig, pose_names=(), reference_pose=ref, used=np.zeros(0, dtype=bool),
             R_world_target=np.zeros((0, 3, 3)), t_world_target=np.zeros((0, 3)),
             points_target=np.zeros((0, 3)), grid_shape=None,
-            parameters=_params_of(rig), covariance=np.full((n, n), np.nan),
+            parameter_names=expected, parameters=_params_of(rig),
+            covariance=np.full((n, n), np.nan),
             std=np.full(n, np.nan), sigma_camera=float("nan"), sigma_projector=float("nan"),
             residuals_camera=np.zeros((0, 0, 2)), residuals_projector=np.zeros((0, 0, 2)),
             rms_camera=float("nan"), rms_projector=float("nan"),
@@ -315,13 +318,13 @@ def rig_from_json(doc, *, where: str = "rig.json") -> RigCalibration:
     sig = r.get(rep, "sigma_px", f"{c}.sigma_px")
     par = r.get(rep, "parameters", f"{c}.parameters")
     names = r.get(par, "names", f"{c}.parameters.names")
-    if names != list(RIG_PARAMETER_NAMES):
-        r.fail(f"{c}.parameters.names", f"must be {list(RIG_PARAMETER_NAMES)}")
+    if names != list(expected):
+        r.fail(f"{c}.parameters.names", f"must be {list(expected)} (the devices' parameters)")
     values = r.array(r.get(par, "values", f"{c}.parameters.values"),
-                     f"{c}.parameters.values", (22,))
-    std = r.array(r.get(par, "std", f"{c}.parameters.std"), f"{c}.parameters.std", (22,))
+                     f"{c}.parameters.values", (n,))
+    std = r.array(r.get(par, "std", f"{c}.parameters.std"), f"{c}.parameters.std", (n,))
     cov = r.array(r.get(par, "covariance", f"{c}.parameters.covariance"),
-                  f"{c}.parameters.covariance", (22, 22))
+                  f"{c}.parameters.covariance", (n, n))
     pts = r.array(r.get(rep, "points_target_mm", f"{c}.points_target_mm"),
                   f"{c}.points_target_mm", (-1, 3))
     if np.any(np.isnan(pts)):
@@ -384,7 +387,8 @@ def rig_from_json(doc, *, where: str = "rig.json") -> RigCalibration:
     return RigCalibration(
         rig=rig, pose_names=tuple(names_p), reference_pose=ref, used=used,
         R_world_target=R_all, t_world_target=T_all, points_target=pts,
-        grid_shape=tuple(gs) if gs is not None else None, parameters=values, covariance=cov,
+        grid_shape=tuple(gs) if gs is not None else None, parameter_names=expected,
+        parameters=values, covariance=cov,
         std=std, sigma_camera=r.number(sig, "camera", f"{c}.sigma_px.camera"),
         sigma_projector=r.number(sig, "projector", f"{c}.sigma_px.projector"),
         residuals_camera=arrays["residuals", "camera"],
@@ -440,11 +444,7 @@ def _phase_errors(r: _Reader, doc) -> dict:
 
 
 def _params_of(rig: Rig) -> np.ndarray:
-    out = []
-    for d in (rig.camera, rig.projector):
-        k = d.intrinsics
-        out += [k.m, k.u0, k.v0, k.k1, k.s1, k.s2, 0.0, 0.0, 0.0, *d.t_dev]
-    return np.array(out, dtype=float)
+    return np.concatenate([rig.camera.to_params(), rig.projector.to_params()])
 
 
 def load_rig(path) -> RigCalibration:

@@ -207,7 +207,7 @@ def run_calibration(vrig: VirtualRig, *, n_poses: int, seed: int = 0,
     ``{"gamma_correction": False}``). Returns the
     :class:`telefringe.calibrate.RigCalibration`.
     """
-    from telefringe.calibration.calibrate import calibrate_from_scans
+    from telefringe.calibration.from_scans import calibrate_from_scans
     from telefringe.simulate.calibration import (
         calibration_manifest,
         iter_calibration_set,
