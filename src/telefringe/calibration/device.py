@@ -16,7 +16,7 @@ from telefringe.calibration.problem import (
     check_observations,
 )
 from telefringe.calibration.solver import robust_sigma
-from telefringe.calibration.start_telecentric import DeviceStart, start_device
+from telefringe.calibration.starts import device_start
 from telefringe.devices.base import Device
 
 __all__ = ["DeviceCalibration", "Outlier", "calibrate_device"]
@@ -62,7 +62,8 @@ class DeviceCalibration:
         ``device.intrinsic_names``; NaN if fixed.
     principal_point_weak : bool, the data barely constrain (u0, v0) (the prior or the
         fixed value decides them).
-    start : DeviceStart, the closed-form start.
+    start : the closed-form start of the device's model (e.g.
+        :class:`~telefringe.calibration.start_telecentric.DeviceStart`).
     outliers : tuple of Outlier.
     """
 
@@ -75,7 +76,7 @@ class DeviceCalibration:
     rms_per_pose: np.ndarray
     std: np.ndarray
     principal_point_weak: bool
-    start: DeviceStart
+    start: object
     outliers: tuple[Outlier, ...] = ()
 
     @property
@@ -181,11 +182,12 @@ def calibrate_device(points_target, observations, *, pixel_size, image_size,
                      principal_point_sigma: float | None = None, distortion: bool = True,
                      outlier_threshold: float = 5.0, max_rounds: int = 3,
                      min_points: int = 6, min_poses: int = 3, pose_names=None,
-                     grid_shape=None, name: str = "device") -> DeviceCalibration:
+                     grid_shape=None, name: str = "device",
+                     model: str = "telecentric") -> DeviceCalibration:
     """Calibrate one device alone (camera, or projector as inverse camera).
 
-    The start is the telecentric closed form
-    (:func:`~telefringe.calibration.start_telecentric.start_device`).
+    The start is the closed form of the device's ``model``
+    (:func:`telefringe.calibration.starts.device_start`).
 
     Parameters
     ----------
@@ -205,6 +207,7 @@ def calibrate_device(points_target, observations, *, pixel_size, image_size,
     min_points, min_poses : int, fewest markers for a usable pose, fewest usable poses.
     pose_names : sequence of str, for the outlier report; grid_shape : (rows, cols).
     name : str, the device's name in the outlier report.
+    model : str, the device model (:data:`telefringe.calibration.starts.MODELS`).
 
     Returns
     -------
@@ -220,7 +223,7 @@ def calibrate_device(points_target, observations, *, pixel_size, image_size,
     pose_names = [str(i) for i in range(n_poses)] if pose_names is None else list(pose_names)
     centre, sigma_pp = _pp_setup(principal_point, principal_point_value,
                                  principal_point_sigma, image_size)
-    dev0, start, used, R0, T0 = start_device(P, obs, pixel_size=pixel_size,
+    dev0, start, used, R0, T0 = device_start(model)(P, obs, pixel_size=pixel_size,
                                              image_size=image_size, principal_point=centre,
                                              min_points=min_points)
     if used.size < min_poses:

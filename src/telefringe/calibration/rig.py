@@ -27,12 +27,7 @@ from telefringe.calibration.device import (
 )
 from telefringe.calibration.errors import CalibrationError
 from telefringe.calibration.problem import BundleProblem, ParameterLayout, check_observations
-from telefringe.calibration.start_telecentric import (
-    PROJECTOR_SIDES,
-    choose_branches,
-    mirror_needed,
-    mirror_pose,
-)
+from telefringe.calibration.starts import PROJECTOR_SIDES, rig_rotations
 from telefringe.devices.base import ROTATION_NAMES, Device
 from telefringe.devices.rig import Rig
 from telefringe.geometry.so3 import chordal_mean
@@ -152,7 +147,7 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
 
     Each device is first calibrated alone (:func:`~telefringe.calibration.device.calibrate_device`);
     telecentric devices leave a mirror ambiguity, settled per pose by rigidity and globally
-    by ``projector_side`` (:mod:`telefringe.calibration.start_telecentric`). One joint
+    by ``projector_side`` (:func:`telefringe.calibration.starts.rig_rotations`). One joint
     adjustment of both devices and every pose follows (world frame = target at the
     reference pose), with the parameter covariance from its Jacobian.
 
@@ -224,18 +219,10 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
     if len(poses) < min_poses:
         raise CalibrationError(f"{len(poses)} pose(s) seen by both devices, at least "
                                f"{min_poses} needed")
-    Rc, Rp = choose_branches(cal_c.R_dev_target[poses], cal_p.R_dev_target[poses])
-    R_pc = chordal_mean(Rp @ np.transpose(Rc, (0, 2, 1)))
-    if mirror_needed(R_pc, projector_side):
-        Rc, Rp, R_pc = mirror_pose(Rc), mirror_pose(Rp), mirror_pose(R_pc)
-    if projector_side is None:
-        mirror = "convention"
-        warns.append("projector_side not given: the mirror ambiguity of a flat target was "
-                     "resolved by convention (the projector coordinate most sensitive to depth "
-                     "decreases as a surface rises toward the camera); if heights come out "
-                     "inverted, calibrate again with the projector's side")
-    else:
-        mirror = f"projector_side={projector_side}"
+    Rc, Rp, R_pc, mirror, more = rig_rotations(
+        cal_c.device.model, cal_p.device.model, cal_c.R_dev_target[poses],
+        cal_p.R_dev_target[poses], projector_side)
+    warns += more
     # degenerate pose sets: every target normal (in the camera) nearly the same
     normals = Rc[:, :, 2]
     spread = np.degrees(np.max(np.arccos(np.clip(normals @ normals[0], -1, 1))))

@@ -29,7 +29,7 @@ import numpy as np
 from telefringe.calibration.errors import CalibrationError
 from telefringe.calibration.problem import check_observations
 from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
-from telefringe.geometry.so3 import project_to_rotation
+from telefringe.geometry.so3 import chordal_mean, project_to_rotation
 
 __all__ = [
     "PROJECTOR_SIDES",
@@ -38,6 +38,7 @@ __all__ = [
     "closed_form_device",
     "mirror_needed",
     "mirror_pose",
+    "resolve_rotations",
     "start_device",
 ]
 
@@ -227,3 +228,36 @@ def mirror_needed(R_pc: np.ndarray, projector_side: str | None) -> bool:
         return dot > 0
     j = 0 if abs(R_pc[0, 2]) >= abs(R_pc[1, 2]) else 1
     return R_pc[j, 2] < 0
+
+
+def resolve_rotations(R_cam_target, R_proj_target, projector_side: str | None):
+    """Settle the mirror ambiguities of two telecentric devices calibrated alone.
+
+    Parameters
+    ----------
+    R_cam_target, R_proj_target : (n, 3, 3) target -> device rotations of the same poses
+        (the reference pose first), each on an arbitrary mirror branch.
+    projector_side : where the projector is in the camera image, or None (convention).
+
+    Returns
+    -------
+    R_cam_target, R_proj_target : (n, 3, 3), on one rigid, globally chosen branch.
+    R_proj_cam : (3, 3), their mean relative rotation.
+    mirror : str, how the global ambiguity was resolved ("projector_side=..." or
+        "convention").
+    warnings : list of str.
+    """
+    Rc, Rp = choose_branches(np.asarray(R_cam_target), np.asarray(R_proj_target))
+    R_pc = chordal_mean(Rp @ np.transpose(Rc, (0, 2, 1)))
+    if mirror_needed(R_pc, projector_side):
+        Rc, Rp, R_pc = mirror_pose(Rc), mirror_pose(Rp), mirror_pose(R_pc)
+    warns = []
+    if projector_side is None:
+        mirror = "convention"
+        warns.append("projector_side not given: the mirror ambiguity of a flat target was "
+                     "resolved by convention (the projector coordinate most sensitive to depth "
+                     "decreases as a surface rises toward the camera); if heights come out "
+                     "inverted, calibrate again with the projector's side")
+    else:
+        mirror = f"projector_side={projector_side}"
+    return Rc, Rp, R_pc, mirror, warns
