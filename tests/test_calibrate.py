@@ -354,28 +354,37 @@ def test_outliers_are_rejected_and_reported(scene):
 
 
 def test_uncertainty_matches_monte_carlo():
-    """The covariance's standard deviations against the spread of 20 noisy repeats
-    (small grid and few poses for speed)."""
+    """The covariance against 100 noisy repeats (small grid and few poses for speed): each
+    parameter's observed spread against its predicted standard deviation, and the
+    Mahalanobis distance of each repeat's error under its own covariance (chi-square)."""
     rng = np.random.default_rng(2024)
     rig = paper_like_rig()
     P = grid_points(5, 6, pitch=5.0)
     Rs, Ts = target_poses(6, rng, tilt_deg=15.0, centre=(12.5, 10.0, 0.0))
-    errs, stds = [], []
-    for _ in range(20):
+    n_rep = 100
+    errs, stds, d2 = [], [], []
+    for _ in range(n_rep):
         cam, proj = observe(rig, P, Rs, Ts, rng)
         cal = calibrate_rig(P, cam, proj, camera_pixel_size=CAM_PIX,
                             projector_pixel_size=PROJ_PIX, camera_size=CAM_SIZE,
                             projector_size=PROJ_SIZE, outlier_threshold=np.inf,
                             projector_side=side_of(rig))
-        errs.append(rig_errors(cal, rig))
+        e = rig_errors(cal, rig)
+        errs.append(e)
         stds.append(cal.std)
+        d2.append(float(e @ np.linalg.solve(cal.covariance, e)))
     errs, stds = np.array(errs), np.array(stds)
+    k = errs.shape[1]  # every rig parameter is free here (the principal point has a prior)
     ratio = errs.std(axis=0) / stds.mean(axis=0)
-    # sampling error of a standard deviation from 20 samples: about 16 % (bounds ~3.5 of it)
-    assert np.all((ratio > 0.55) & (ratio < 1.6)), dict(zip(cal.parameter_names, ratio,
-                                                            strict=True))
-    z2 = np.mean((errs / stds) ** 2)
-    assert 0.7 < z2 < 1.35
+    # sampling error of a standard deviation from n samples: 1/sqrt(2(n - 1)) = 7 %; the
+    # bound is 4 of it (22 parameters compared)
+    se = 1.0 / np.sqrt(2 * (n_rep - 1))
+    assert np.all(np.abs(ratio - 1) < 4 * se), dict(zip(cal.parameter_names, ratio,
+                                                        strict=True))
+    # sum of n chi-square(k) variables: mean k n, sd sqrt(2 k n); bound 4 sd
+    mean_d2 = np.mean(d2) / k
+    print(f"spread / predicted {ratio.min():.3f}..{ratio.max():.3f}, mean d2 / k {mean_d2:.4f}")
+    assert abs(mean_d2 - 1) < 4 * np.sqrt(2.0 / (k * n_rep)), mean_d2
 
 
 # --------------------------------------------------------------------------- degenerate
