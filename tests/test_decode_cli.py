@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from telefringe.cli import main
-from telefringe.io.coords import read_coords
+from telefringe.io.coords_npz import read_coords
 from telefringe.io.images import read_image, write_png
 from telefringe.io.scan import read_scan
 

@@ -88,7 +88,7 @@ def test_measure_errors(plate_out, tmp_path, capsys):
 
 
 def test_height_map_of_the_plate(plate_out):
-    from telefringe.io.export import read_height_tiff
+    from telefringe.io.tiff import read_height_tiff
 
     tmp, out, rec, vr = plate_out
     hm = read_height_tiff(out / "heightmap.tif")
@@ -113,7 +113,7 @@ def test_reconstruct_command(plate_out, tmp_path, capsys):
     assert main(["reconstruct", str(tmp / "scan"), "--rig", str(rig_json), "-o", str(out2),
                  "--no-gamma-correction", "--no-ply"]) == 0
     assert (out2 / "points.npz").exists() and not (out2 / "cloud.ply").exists()
-    from telefringe.io.export import read_points
+    from telefringe.io.points_npz import read_points
 
     cloud, texture = read_points(out2)
     assert cloud.count == rec.cloud.count

@@ -60,7 +60,7 @@ def decode_cmd(
     from telefringe.fringes.decode import DecodeError, decode
     from telefringe.fringes.phase import PhaseInputError
     from telefringe.io.atomic import check_can_write
-    from telefringe.io.coords import write_coords
+    from telefringe.io.coords_npz import write_coords
     from telefringe.io.errors import InputError
     from telefringe.io.scan import load_scan_manifest, read_scan
 

@@ -86,8 +86,9 @@ def paper(
     """
     from telefringe.io.atomic import atomic_dir, check_can_write
     from telefringe.io.errors import InputError
-    from telefringe.io.export import write_json
-    from telefringe.io.figures import paper_result_to_json, write_spacing_histograms
+    from telefringe.io.figures.histograms import write_spacing_histograms
+    from telefringe.io.jsonable import write_json
+    from telefringe.io.reports import paper_result_to_json
     from telefringe.simulate.experiments import run_paper
 
     if seed < 0:

@@ -29,15 +29,13 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     from telefringe.fringes.phase import PhaseInputError
     from telefringe.io.atomic import atomic_dir, check_can_write
     from telefringe.io.errors import InputError
-    from telefringe.io.export import (
-        cloud_summary,
-        write_height_png,
-        write_height_tiff,
-        write_json,
-        write_ply,
-        write_points,
-    )
+    from telefringe.io.figures.heightmap_png import write_height_png
+    from telefringe.io.jsonable import write_json
+    from telefringe.io.ply import write_ply
+    from telefringe.io.points_npz import write_points
+    from telefringe.io.reports import cloud_summary
     from telefringe.io.scan import load_scan_manifest, read_scan
+    from telefringe.io.tiff import write_height_tiff
     from telefringe.reconstruction.reconstruct import TriangulationError, reconstruct_scan
 
     output = Path(output)
@@ -79,9 +77,9 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
         summary["heightmap"] = {"pixel_mm": rec.height.pixel_mm,
                                 "shape": list(rec.height.z.shape)}
     with progress_bar("writing", 1) as advance, atomic_dir(output, force=force) as tmp:
-        # what io.export.write_reconstruction writes, the PNG preview drawn from the height
-        # map binned to about the figure's resolution (drawing every pixel of a full-size
-        # map took half a second for no visible difference)
+        # what io.reconstruction_folder.write_reconstruction writes, the PNG preview drawn
+        # from the height map binned to about the figure's resolution (drawing every pixel
+        # of a full-size map took half a second for no visible difference)
         # The PNG is drawn on a second thread meanwhile: the other files are mostly
         # compression and disk writes, which run without the GIL
         tmp = Path(tmp)
