@@ -83,7 +83,7 @@ def mark(name):
     marks.append((name, time.perf_counter(), time.process_time()))
 import telefringe.cli
 from telefringe.io.rig import load_rig
-from telefringe.io.scan import read_scan
+from telefringe.io.scan_json import read_scan
 from telefringe.fringes.decode import decode
 from telefringe.reconstruction.reconstruct import triangulate, height_map
 from telefringe.io.figures.heightmap_png import write_height_png
@@ -144,7 +144,7 @@ def main() -> None:
     from telefringe.io.figures.heightmap_png import write_height_png
     from telefringe.io.ply import write_ply
     from telefringe.io.points_npz import write_points
-    from telefringe.io.scan import read_scan, write_scan
+    from telefringe.io.scan_json import read_scan, write_scan
     from telefringe.io.tiff import write_height_tiff
     from telefringe.reconstruction.reconstruct import Triangulator, height_map, triangulate
     from telefringe.simulate.presets import get_preset

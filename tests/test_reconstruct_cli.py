@@ -11,7 +11,7 @@ import telefringe.simulate.render as sim
 from telefringe.cli import main
 from telefringe.cli.reconstruct import reconstruct_to_folder
 from telefringe.io.errors import InputError
-from telefringe.io.scan import write_scan
+from telefringe.io.scan_json import write_scan
 from telefringe.simulate import scenes
 from telefringe.simulate.presets import get_preset
 

@@ -122,7 +122,7 @@ def _device():
 def test_decode_command_uses_a_rigs_model(calib, fast_rig, tmp_path, capsys):
     from telefringe.cli import main
     from telefringe.io.rig import save_rig
-    from telefringe.io.scan import write_scan
+    from telefringe.io.scan_json import write_scan
 
     scan, _ = render_scan(fast_rig, plate_at_z(0.2), default_groups(fast_rig), seed=9)
     write_scan(tmp_path / "scan", scan)
@@ -154,7 +154,7 @@ def test_reconstruct_command_uses_a_rigs_model_unless_told_to_refit(calib, fast_
                                                                      tmp_path, capsys):
     from telefringe.cli import main
     from telefringe.io.rig import save_rig
-    from telefringe.io.scan import write_scan
+    from telefringe.io.scan_json import write_scan
 
     scan, _ = render_scan(fast_rig, plate_at_z(0.2), default_groups(fast_rig), seed=10)
     write_scan(tmp_path / "scan", scan)

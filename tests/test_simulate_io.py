@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from telefringe.cli import main
+from telefringe.io.calibration_json import load_calibration_set
 from telefringe.io.errors import InputError
-from telefringe.io.scan import load_calibration_set, read_scan, write_scan
+from telefringe.io.scan_json import read_scan, write_scan
 from telefringe.io.truth import read_truth, write_truth
 from telefringe.simulate.calibration import (
     mirror_pose,

@@ -62,7 +62,7 @@ def decode_cmd(
     from telefringe.io.atomic import check_can_write
     from telefringe.io.coords_npz import write_coords
     from telefringe.io.errors import InputError
-    from telefringe.io.scan import load_scan_manifest, read_scan
+    from telefringe.io.scan_json import load_scan_manifest, read_scan
 
     check_can_write(output, force=force)
     phase_errors = None
@@ -154,7 +154,7 @@ def patterns_cmd(
     from telefringe.fringes.patterns import pattern_scan
     from telefringe.io.atomic import check_can_write
     from telefringe.io.errors import InputError
-    from telefringe.io.scan import write_scan
+    from telefringe.io.scan_json import write_scan
 
     check_can_write(out, force=force)
     per = _parse_periods(periods)

@@ -34,7 +34,7 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     from telefringe.io.ply import write_ply
     from telefringe.io.points_npz import write_points
     from telefringe.io.reports import cloud_summary
-    from telefringe.io.scan import load_scan_manifest, read_scan
+    from telefringe.io.scan_json import load_scan_manifest, read_scan
     from telefringe.io.tiff import write_height_tiff
     from telefringe.reconstruction.reconstruct import TriangulationError, reconstruct_scan
 
