@@ -67,7 +67,7 @@ def _write_rig(path: Path, rig, phase_errors=None) -> None:
     nonlinearity models when given."""
     import json
 
-    from telefringe.io.rig import bare_rig_json
+    from telefringe.io.rig_json import bare_rig_json
 
     path.write_text(json.dumps(bare_rig_json(rig, reference_pose="truth",
                                              phase_errors=phase_errors)))
@@ -82,7 +82,7 @@ marks = []
 def mark(name):
     marks.append((name, time.perf_counter(), time.process_time()))
 import telefringe.cli
-from telefringe.io.rig import load_rig
+from telefringe.io.rig_json import load_rig
 from telefringe.io.scan_json import read_scan
 from telefringe.fringes.decode import decode
 from telefringe.reconstruction.reconstruct import triangulate, height_map

@@ -100,7 +100,7 @@ def test_height_map_of_the_plate(plate_out):
 
 def write_rig_json(path, rig):
     """A rig.json of a Rig without a calibration report."""
-    from telefringe.io.rig import bare_rig_json
+    from telefringe.io.rig_json import bare_rig_json
 
     path.write_text(json.dumps(bare_rig_json(rig, reference_pose="truth")))
     return path

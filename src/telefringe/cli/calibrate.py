@@ -165,7 +165,7 @@ def calibrate_cmd(
     from telefringe.io.atomic import atomic_dir, check_can_write
     from telefringe.io.calibration_json import load_calibration_set
     from telefringe.io.errors import InputError
-    from telefringe.io.rig import save_rig
+    from telefringe.io.rig_json import save_rig
     from telefringe.io.scan_json import read_scan
 
     check_can_write(output, force=force)

@@ -68,7 +68,7 @@ def decode_cmd(
     phase_errors = None
     man = load_scan_manifest(scan)
     if rig is not None:
-        from telefringe.io.rig import load_rig
+        from telefringe.io.rig_json import load_rig
 
         calib = load_rig(rig)
         kp = calib.rig.projector.intrinsics

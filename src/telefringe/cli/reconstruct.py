@@ -176,7 +176,7 @@ def reconstruct_cmd(
     # third-party leaves only, which nothing else imports meanwhile (two threads importing
     # modules that import each other could see each other's half-initialised modules)
     _prefetch("plyfile", "tifffile", "PIL.Image", "PIL.ImageDraw")
-    from telefringe.io.rig import load_rig
+    from telefringe.io.rig_json import load_rig
 
     rig_obj = load_rig(rig)
     extra = {"phase_errors": None} if refit_gamma else {}
