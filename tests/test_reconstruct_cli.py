@@ -106,6 +106,32 @@ def write_rig_json(path, rig):
     return path
 
 
+def test_reconstruct_command_refuses_the_rig_of_another_projector(plate_out, tmp_path,
+                                                                  capsys):
+    """The projector-size check is reconstruct_scan's (the command has none of its own):
+    the user sees one line naming the scan and both sizes, status 2, nothing written."""
+    from dataclasses import replace
+
+    from telefringe.devices.rig import Rig
+    from telefringe.devices.telecentric import TelecentricDevice
+
+    tmp, out, rec, vr = plate_out
+    p = vr.rig.projector
+    w, h = p.intrinsics.width + 16, p.intrinsics.height + 8
+    bad = Rig(vr.rig.camera, TelecentricDevice(replace(p.intrinsics, width=w, height=h),
+                                               p.R_dev_world, p.t_dev))
+    rig_json = write_rig_json(tmp_path / "rig.json", bad)
+    capsys.readouterr()
+    assert main(["reconstruct", str(tmp / "scan"), "--rig", str(rig_json), "-o",
+                 str(tmp_path / "o"), "--no-gamma-correction"]) == 2
+    err = capsys.readouterr().err  # the finished "reading images" bar, then the error
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1] == (
+        f"error: {tmp / 'scan'}: the scan's patterns are for a {p.intrinsics.width} x "
+        f"{p.intrinsics.height} projector but the rig's projector is {w} x {h}")
+    assert not (tmp_path / "o").exists()
+
+
 def test_reconstruct_command(plate_out, tmp_path, capsys):
     tmp, out, rec, vr = plate_out
     rig_json = write_rig_json(tmp_path / "rig.json", vr.rig)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from telefringe.cli._common import detail, info, progress_bar
+from telefringe.cli._common import detail, info, progress_bar, read_scan_with_progress
 
 
 def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
@@ -34,31 +34,15 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     from telefringe.io.ply import write_ply
     from telefringe.io.points_npz import write_points
     from telefringe.io.reports import cloud_summary
-    from telefringe.io.scan_json import load_scan_manifest, read_scan
     from telefringe.io.tiff import write_height_tiff
     from telefringe.reconstruction.reconstruct import TriangulationError, reconstruct_scan
 
     output = Path(output)
     check_can_write(output, force=force)
+    # the scan's projector and camera sizes are checked against the rig by reconstruct_scan
     # (a RigCalibration from load_rig stands for its Rig, and reconstruct_scan takes the
     # projector nonlinearity it learned)
-    man = load_scan_manifest(scan_dir)
-    kp = rig.projector.intrinsics
-    if kp.width and kp.height and (man.projector_width, man.projector_height) != (
-            kp.width, kp.height):
-        raise InputError(
-            f"{scan_dir}: the scan's patterns are for a {man.projector_width} x "
-            f"{man.projector_height} projector but the rig's projector is {kp.width} x "
-            f"{kp.height}: use the rig.json of the rig that took this scan")
-    n = sum(len(g.images) for g in man.groups) + bool(man.white) + bool(man.black)
-    with progress_bar("reading images", n) as advance:
-        done = [0]
-
-        def tick(k, total):
-            advance(k - done[0])
-            done[0] = k
-
-        data = read_scan(scan_dir, progress=tick)
+    data = read_scan_with_progress(scan_dir)
     with progress_bar("reconstructing", 1) as advance:
         try:
             rec = reconstruct_scan(data, rig, max_residual=max_residual, pixel_mm=pixel_mm,
