@@ -107,7 +107,7 @@ cloud = triangulate(rig, coords)
 mark("triangulate (incl. per-rig set-up)")
 hm = height_map(cloud)
 mark("height map")
-from telefringe.cli.reconstruct import _preview
+from telefringe.io.reconstruction_folder import preview_map as _preview
 out = sys.argv[3]
 write_points(out + "/points.npz", cloud)
 mark("write points.npz")
@@ -139,11 +139,11 @@ def main() -> None:
 
     import numba
 
-    from telefringe.cli.reconstruct import _preview
     from telefringe.fringes.decode import decode
     from telefringe.io.figures.heightmap_png import write_height_png
     from telefringe.io.ply import write_ply
     from telefringe.io.points_npz import write_points
+    from telefringe.io.reconstruction_folder import preview_map as _preview
     from telefringe.io.scan_json import read_scan, write_scan
     from telefringe.io.tiff import write_height_tiff
     from telefringe.reconstruction.reconstruct import Triangulator, height_map, triangulate

@@ -148,13 +148,32 @@ def test_previews_are_png(tmp_path):
 
 def test_write_reconstruction(tmp_path):
     cloud = small_cloud()
-    out = write_reconstruction(tmp_path, cloud, height_map(cloud), title="x")
+    out = write_reconstruction(tmp_path, cloud, height_map(cloud), title="x",
+                               summary={"valid": np.int64(cloud.count), "s": np.nan})
     for name in ("points.npz", "cloud.ply", "heightmap.tif", "heightmap.json",
-                 "heightmap.png", "heightmap_sigma.tif"):
+                 "heightmap.png", "heightmap_sigma.tif", "summary.json"):
         assert (tmp_path / name).exists(), name
-    assert set(out) == {"points", "ply", "heightmap", "heightmap_json", "heightmap_png"}
+    assert set(out) == {"points", "ply", "heightmap", "heightmap_json", "heightmap_png",
+                        "summary"}
+    assert json.loads(out["summary"].read_text()) == {"valid": cloud.count, "s": None}
+    with pytest.raises(InputError, match="already exists"):  # nothing replaced unforced
+        write_reconstruction(tmp_path, cloud, height_map(cloud))
     with pytest.raises(InputError):
         write_reconstruction(tmp_path / "missing", cloud)
+
+
+def test_preview_map_is_the_least_binning_that_fits_the_preview():
+    from telefringe.io.reconstruction_folder import PREVIEW_PIXELS, preview_map
+    from telefringe.reconstruction.reconstruct import HeightMap
+
+    assert PREVIEW_PIXELS == 800
+    big = HeightMap(np.zeros((900, 1700)), 0.0, 0.0, 0.01)
+    p = preview_map(big)  # factor ceil(1700 / 800) = 3, partial edge blocks kept
+    assert p.z.shape == (300, 567) and p.pixel_mm == pytest.approx(0.03)
+    edge = HeightMap(np.zeros((10, 1600)), 0.0, 0.0, 0.01)
+    assert preview_map(edge).z.shape == (5, 800)  # exactly 800: factor 2, not 3
+    small = HeightMap(np.zeros((40, 50)), 0.0, 0.0, 0.01)
+    assert preview_map(small) is small
 
 
 def test_bga_csv_and_map(tmp_path):

@@ -23,18 +23,12 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     -------
     telefringe.reconstruct.Reconstruction
     """
-    from concurrent.futures import ThreadPoolExecutor
-
     from telefringe.fringes.decode import DecodeError
     from telefringe.fringes.phase import PhaseInputError
     from telefringe.io.atomic import atomic_dir, check_can_write
     from telefringe.io.errors import InputError
-    from telefringe.io.figures.heightmap_png import write_height_png
-    from telefringe.io.jsonable import write_json
-    from telefringe.io.ply import write_ply
-    from telefringe.io.points_npz import write_points
+    from telefringe.io.reconstruction_folder import write_reconstruction
     from telefringe.io.reports import cloud_summary
-    from telefringe.io.tiff import write_height_tiff
     from telefringe.reconstruction.reconstruct import TriangulationError, reconstruct_scan
 
     output = Path(output)
@@ -61,38 +55,11 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
         summary["heightmap"] = {"pixel_mm": rec.height.pixel_mm,
                                 "shape": list(rec.height.z.shape)}
     with progress_bar("writing", 1) as advance, atomic_dir(output, force=force) as tmp:
-        # what io.reconstruction_folder.write_reconstruction writes, the PNG preview drawn
-        # from the height map binned to about the figure's resolution (drawing every pixel
-        # of a full-size map took half a second for no visible difference)
-        # The PNG is drawn on a second thread meanwhile: the other files are mostly
-        # compression and disk writes, which run without the GIL
-        tmp = Path(tmp)
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            png = None
-            if rec.height is not None:
-                png = pool.submit(write_height_png, tmp / "heightmap.png",
-                                  _preview(rec.height), title=title or Path(scan_dir).name)
-            write_points(tmp / "points.npz", rec.cloud, texture=rec.texture,
-                         radiance=rec.radiance)
-            if ply:
-                write_ply(tmp / "cloud.ply", rec.cloud, texture=rec.texture)
-            if rec.height is not None:
-                write_height_tiff(tmp / "heightmap.tif", rec.height)
-            write_json(tmp / "summary.json", summary)
-            if png is not None:
-                png.result()  # its error, if any, raised here
+        write_reconstruction(tmp, rec.cloud, rec.height, texture=rec.texture,
+                             radiance=rec.radiance, title=title or Path(scan_dir).name,
+                             ply=ply, summary=summary)
         advance()
     return rec
-
-
-#: the longer side of the height map drawn in heightmap.png (pixels); the figure's axes
-#: are about 550 px wide
-_PREVIEW_PIXELS = 800
-
-
-def _preview(hm):
-    factor = -(-max(hm.z.shape) // _PREVIEW_PIXELS)
-    return hm.binned(factor)
 
 
 def _prefetch(*modules: str):
