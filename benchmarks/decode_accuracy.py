@@ -87,7 +87,7 @@ def main() -> None:
 
     shared = Path(__file__).resolve().parents[2] / "shared" / "realdata"
     if shared.is_dir():
-        from telefringe.io.scan import read_scan
+        from telefringe.io.scan_json import read_scan
 
         scan = read_scan(shared / "slmaster_mono_relief")
         pc = decode(scan)

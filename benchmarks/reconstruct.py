@@ -67,7 +67,7 @@ def _write_rig(path: Path, rig, phase_errors=None) -> None:
     nonlinearity models when given."""
     import json
 
-    from telefringe.io.rig import bare_rig_json
+    from telefringe.io.rig_json import bare_rig_json
 
     path.write_text(json.dumps(bare_rig_json(rig, reference_pose="truth",
                                              phase_errors=phase_errors)))
@@ -82,11 +82,14 @@ marks = []
 def mark(name):
     marks.append((name, time.perf_counter(), time.process_time()))
 import telefringe.cli
-from telefringe.io.rig import load_rig
-from telefringe.io.scan import read_scan
+from telefringe.io.rig_json import load_rig
+from telefringe.io.scan_json import read_scan
 from telefringe.fringes.decode import decode
 from telefringe.reconstruction.reconstruct import triangulate, height_map
-from telefringe.io import export
+from telefringe.io.figures.heightmap_png import write_height_png
+from telefringe.io.ply import write_ply
+from telefringe.io.points_npz import write_points
+from telefringe.io.tiff import write_height_tiff
 mark("imports (cli, rig.json reader, decode, reconstruct)")
 from telefringe.geometry._distortion_kernels import undistort_point
 undistort_point(0.0, 0.0, 0.0, 0.0, 0.0)
@@ -104,17 +107,17 @@ cloud = triangulate(rig, coords)
 mark("triangulate (incl. per-rig set-up)")
 hm = height_map(cloud)
 mark("height map")
-from telefringe.cli.reconstruct import _preview
+from telefringe.io.reconstruction_folder import preview_map as _preview
 out = sys.argv[3]
-export.write_points(out + "/points.npz", cloud)
+write_points(out + "/points.npz", cloud)
 mark("write points.npz")
-export.write_ply(out + "/cloud.ply", cloud)
+write_ply(out + "/cloud.ply", cloud)
 mark("write cloud.ply")
-export.write_height_tiff(out + "/heightmap.tif", hm)
+write_height_tiff(out + "/heightmap.tif", hm)
 mark("write heightmap.tif")
 import PIL.Image, PIL.ImageDraw
 mark("import Pillow")
-export.write_height_png(out + "/heightmap.png", _preview(hm))
+write_height_png(out + "/heightmap.png", _preview(hm))
 mark("draw + write heightmap.png")
 prev, cprev = t0, c0
 print(f"    {'':<44s}   wall    CPU")
@@ -136,10 +139,13 @@ def main() -> None:
 
     import numba
 
-    from telefringe.cli.reconstruct import _preview
     from telefringe.fringes.decode import decode
-    from telefringe.io import export
-    from telefringe.io.scan import read_scan, write_scan
+    from telefringe.io.figures.heightmap_png import write_height_png
+    from telefringe.io.ply import write_ply
+    from telefringe.io.points_npz import write_points
+    from telefringe.io.reconstruction_folder import preview_map as _preview
+    from telefringe.io.scan_json import read_scan, write_scan
+    from telefringe.io.tiff import write_height_tiff
     from telefringe.reconstruction.reconstruct import Triangulator, height_map, triangulate
     from telefringe.simulate.presets import get_preset
     from telefringe.simulate.render import default_groups, render_scan
@@ -200,10 +206,10 @@ def main() -> None:
     def write():
         with tempfile.TemporaryDirectory() as d:
             d = Path(d)
-            export.write_points(d / "points.npz", cloud)
-            export.write_ply(d / "cloud.ply", cloud)
-            export.write_height_tiff(d / "heightmap.tif", hm)
-            export.write_height_png(d / "heightmap.png", _preview(hm))
+            write_points(d / "points.npz", cloud)
+            write_ply(d / "cloud.ply", cloud)
+            write_height_tiff(d / "heightmap.tif", hm)
+            write_height_png(d / "heightmap.png", _preview(hm))
 
     t_write, _ = _median_time(write, max(1, args.runs // 2))
 

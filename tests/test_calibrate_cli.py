@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from telefringe.cli import main
-from telefringe.io.rig import load_rig
+from telefringe.io.rig_json import load_rig
 from telefringe.simulate.presets import get_preset
 
 

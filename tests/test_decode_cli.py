@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from telefringe.cli import main
-from telefringe.io.coords import read_coords
+from telefringe.io.coords_npz import read_coords
 from telefringe.io.images import read_image, write_png
-from telefringe.io.scan import read_scan
+from telefringe.io.scan_json import read_scan
 
 
 def test_patterns_then_decode_round_trip(tmp_path, capsys):

@@ -84,7 +84,7 @@ def test_real_capture_12_step_complementary_gray_code():
     shared = _shared()
     if shared is None:
         pytest.skip("../shared/realdata is absent (real captures live outside the repo)")
-    from telefringe.io.scan import read_scan
+    from telefringe.io.scan_json import read_scan
 
     folder = shared / "realdata" / "slmaster_mono_relief"
     scan = read_scan(folder)

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import telefringe.simulate.render as sim
-from telefringe.io.rig import bare_rig_json
-from telefringe.io.scan import write_scan
+from telefringe.io.rig_json import bare_rig_json
+from telefringe.io.scan_json import write_scan
 from telefringe.simulate.presets import get_preset
 from telefringe.simulate.scenes import plate_at_z
 

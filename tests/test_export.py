@@ -9,20 +9,13 @@ import numpy as np
 import pytest
 
 from telefringe.io.errors import InputError
-from telefringe.io.export import (
-    load_points,
-    read_height_tiff,
-    read_points,
-    to_jsonable,
-    write_bga_csv,
-    write_bga_png,
-    write_height_png,
-    write_height_tiff,
-    write_json,
-    write_ply,
-    write_points,
-    write_reconstruction,
-)
+from telefringe.io.export import write_bga_csv, write_bga_png
+from telefringe.io.figures.heightmap_png import write_height_png
+from telefringe.io.jsonable import to_jsonable, write_json
+from telefringe.io.ply import write_ply
+from telefringe.io.points_npz import load_points, read_points, write_points
+from telefringe.io.reconstruction_folder import write_reconstruction
+from telefringe.io.tiff import read_height_tiff, write_height_tiff
 from telefringe.metrology.core import BGANominal, fit_plane, measure_bga
 from telefringe.reconstruction.reconstruct import PointCloud, height_map
 
@@ -155,13 +148,32 @@ def test_previews_are_png(tmp_path):
 
 def test_write_reconstruction(tmp_path):
     cloud = small_cloud()
-    out = write_reconstruction(tmp_path, cloud, height_map(cloud), title="x")
+    out = write_reconstruction(tmp_path, cloud, height_map(cloud), title="x",
+                               summary={"valid": np.int64(cloud.count), "s": np.nan})
     for name in ("points.npz", "cloud.ply", "heightmap.tif", "heightmap.json",
-                 "heightmap.png", "heightmap_sigma.tif"):
+                 "heightmap.png", "heightmap_sigma.tif", "summary.json"):
         assert (tmp_path / name).exists(), name
-    assert set(out) == {"points", "ply", "heightmap", "heightmap_json", "heightmap_png"}
+    assert set(out) == {"points", "ply", "heightmap", "heightmap_json", "heightmap_png",
+                        "summary"}
+    assert json.loads(out["summary"].read_text()) == {"valid": cloud.count, "s": None}
+    with pytest.raises(InputError, match="already exists"):  # nothing replaced unforced
+        write_reconstruction(tmp_path, cloud, height_map(cloud))
     with pytest.raises(InputError):
         write_reconstruction(tmp_path / "missing", cloud)
+
+
+def test_preview_map_is_the_least_binning_that_fits_the_preview():
+    from telefringe.io.reconstruction_folder import PREVIEW_PIXELS, preview_map
+    from telefringe.reconstruction.reconstruct import HeightMap
+
+    assert PREVIEW_PIXELS == 800
+    big = HeightMap(np.zeros((900, 1700)), 0.0, 0.0, 0.01)
+    p = preview_map(big)  # factor ceil(1700 / 800) = 3, partial edge blocks kept
+    assert p.z.shape == (300, 567) and p.pixel_mm == pytest.approx(0.03)
+    edge = HeightMap(np.zeros((10, 1600)), 0.0, 0.0, 0.01)
+    assert preview_map(edge).z.shape == (5, 800)  # exactly 800: factor 2, not 3
+    small = HeightMap(np.zeros((40, 50)), 0.0, 0.0, 0.01)
+    assert preview_map(small) is small
 
 
 def test_bga_csv_and_map(tmp_path):
@@ -208,7 +220,7 @@ def test_height_preview_colours_follow_the_colour_bar(tmp_path):
 
     import cv2
 
-    from telefringe.io.export import height_colours
+    from telefringe.io.figures.heightmap_png import height_colours
     from telefringe.reconstruction.reconstruct import HeightMap
 
     z = np.tile(np.linspace(-1.0, 1.0, 200), (100, 1))  # rising left to right, mm
@@ -228,7 +240,7 @@ def test_height_preview_colours_follow_the_colour_bar(tmp_path):
     assert tuple(height_colours(np.array([lo - 1, hi + 1]), lo, hi)[0]) == (68, 1, 84)
     assert tuple(height_colours(np.array([lo - 1, hi + 1]), lo, hi)[1]) == (253, 231, 37)
     code = ("import sys, numpy as np\n"
-            "from telefringe.io.export import write_height_png\n"
+            "from telefringe.io.figures.heightmap_png import write_height_png\n"
             "from telefringe.reconstruction.reconstruct import HeightMap\n"
             f"write_height_png({str(tmp_path / 'x.png')!r}, HeightMap(np.zeros((4, 5)), 0, 0, 1))\n"
             "assert 'matplotlib' not in sys.modules\n")
@@ -236,7 +248,7 @@ def test_height_preview_colours_follow_the_colour_bar(tmp_path):
 
 
 def test_preview_tick_labels_are_round_and_never_minus_zero():
-    from telefringe.io.export import _label, _ticks
+    from telefringe.io.figures.heightmap_png import _label, _ticks
 
     t = _ticks(-6.5, 37.2, 6)
     assert [_label(v, t[1] - t[0]) for v in t] == ["0", "10", "20", "30"]

@@ -23,18 +23,20 @@ from hypothesis import strategies as st
 
 from telefringe.calibration.manifest import CalibrationSetManifest
 from telefringe.fringes.scan import GrayGroup, PhaseGroup, Scan, ScanManifest
+from telefringe.io.calibration_json import (
+    CALIB_FORMAT,
+    load_calibration_set,
+    parse_calibration_manifest,
+    write_calibration_manifest,
+)
 from telefringe.io.errors import InputError
 from telefringe.io.images import write_png
-from telefringe.io.scan import (
-    CALIB_FORMAT,
+from telefringe.io.scan_json import (
     SCAN_FORMAT,
-    load_calibration_set,
     load_scan_manifest,
-    parse_calibration_manifest,
     parse_scan_manifest,
     read_scan,
     scan_manifest_to_json,
-    write_calibration_manifest,
     write_scan,
 )
 from telefringe.targets.grid import CircleGridTarget
@@ -509,7 +511,7 @@ def test_a_decompression_bomb_in_a_scan_is_refused(scan_dir):
 
 
 def test_a_scan_too_large_for_memory_is_refused_before_decoding(scan_dir, monkeypatch):
-    import telefringe.io.scan as io_scan
+    import telefringe.io.scan_json as io_scan
 
     monkeypatch.setattr(io_scan, "MAX_SCAN_BYTES", 7 * 48 - 1)
     msg = str(pytest.raises(InputError, read_scan, scan_dir).value)

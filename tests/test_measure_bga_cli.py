@@ -13,7 +13,7 @@ import pytest
 import telefringe.simulate.render as sim
 from telefringe.cli import main
 from telefringe.cli.reconstruct import reconstruct_to_folder
-from telefringe.io.scan import write_scan
+from telefringe.io.scan_json import write_scan
 from telefringe.simulate import scenes
 from telefringe.simulate.experiments import bga_window
 from telefringe.simulate.presets import HDR_EXPOSURES, crop_camera, get_preset

@@ -11,7 +11,7 @@ import telefringe.simulate.render as sim
 from telefringe.cli import main
 from telefringe.cli.reconstruct import reconstruct_to_folder
 from telefringe.io.errors import InputError
-from telefringe.io.scan import write_scan
+from telefringe.io.scan_json import write_scan
 from telefringe.simulate import scenes
 from telefringe.simulate.presets import get_preset
 
@@ -88,7 +88,7 @@ def test_measure_errors(plate_out, tmp_path, capsys):
 
 
 def test_height_map_of_the_plate(plate_out):
-    from telefringe.io.export import read_height_tiff
+    from telefringe.io.tiff import read_height_tiff
 
     tmp, out, rec, vr = plate_out
     hm = read_height_tiff(out / "heightmap.tif")
@@ -100,10 +100,36 @@ def test_height_map_of_the_plate(plate_out):
 
 def write_rig_json(path, rig):
     """A rig.json of a Rig without a calibration report."""
-    from telefringe.io.rig import bare_rig_json
+    from telefringe.io.rig_json import bare_rig_json
 
     path.write_text(json.dumps(bare_rig_json(rig, reference_pose="truth")))
     return path
+
+
+def test_reconstruct_command_refuses_the_rig_of_another_projector(plate_out, tmp_path,
+                                                                  capsys):
+    """The projector-size check is reconstruct_scan's (the command has none of its own):
+    the user sees one line naming the scan and both sizes, status 2, nothing written."""
+    from dataclasses import replace
+
+    from telefringe.devices.rig import Rig
+    from telefringe.devices.telecentric import TelecentricDevice
+
+    tmp, out, rec, vr = plate_out
+    p = vr.rig.projector
+    w, h = p.intrinsics.width + 16, p.intrinsics.height + 8
+    bad = Rig(vr.rig.camera, TelecentricDevice(replace(p.intrinsics, width=w, height=h),
+                                               p.R_dev_world, p.t_dev))
+    rig_json = write_rig_json(tmp_path / "rig.json", bad)
+    capsys.readouterr()
+    assert main(["reconstruct", str(tmp / "scan"), "--rig", str(rig_json), "-o",
+                 str(tmp_path / "o"), "--no-gamma-correction"]) == 2
+    err = capsys.readouterr().err  # the finished "reading images" bar, then the error
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1] == (
+        f"error: {tmp / 'scan'}: the scan's patterns are for a {p.intrinsics.width} x "
+        f"{p.intrinsics.height} projector but the rig's projector is {w} x {h}")
+    assert not (tmp_path / "o").exists()
 
 
 def test_reconstruct_command(plate_out, tmp_path, capsys):
@@ -113,7 +139,7 @@ def test_reconstruct_command(plate_out, tmp_path, capsys):
     assert main(["reconstruct", str(tmp / "scan"), "--rig", str(rig_json), "-o", str(out2),
                  "--no-gamma-correction", "--no-ply"]) == 0
     assert (out2 / "points.npz").exists() and not (out2 / "cloud.ply").exists()
-    from telefringe.io.export import read_points
+    from telefringe.io.points_npz import read_points
 
     cloud, texture = read_points(out2)
     assert cloud.count == rec.cloud.count

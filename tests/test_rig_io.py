@@ -23,7 +23,7 @@ from test_calibrate import (
 
 from telefringe.calibration.rig import calibrate_rig
 from telefringe.io.errors import InputError
-from telefringe.io.rig import RIG_FORMAT, load_rig, rig_from_json, rig_to_json, save_rig
+from telefringe.io.rig_json import RIG_FORMAT, load_rig, rig_from_json, rig_to_json, save_rig
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ from telefringe.fringes.decode import decode
 from telefringe.fringes.nonlinearity import PhaseErrorModel, mean_model, periodic_error
 from telefringe.fringes.phase import wrapped_phase
 from telefringe.io.errors import InputError
-from telefringe.io.rig import rig_from_json, rig_to_json
+from telefringe.io.rig_json import rig_from_json, rig_to_json
 from telefringe.simulate.calibration import iter_calibration_set, simulate_calibration_poses
 from telefringe.simulate.presets import get_preset
 from telefringe.simulate.render import default_groups, render_scan
@@ -121,8 +121,8 @@ def _device():
 
 def test_decode_command_uses_a_rigs_model(calib, fast_rig, tmp_path, capsys):
     from telefringe.cli import main
-    from telefringe.io.rig import save_rig
-    from telefringe.io.scan import write_scan
+    from telefringe.io.rig_json import save_rig
+    from telefringe.io.scan_json import write_scan
 
     scan, _ = render_scan(fast_rig, plate_at_z(0.2), default_groups(fast_rig), seed=9)
     write_scan(tmp_path / "scan", scan)
@@ -153,8 +153,8 @@ def test_decode_command_uses_a_rigs_model(calib, fast_rig, tmp_path, capsys):
 def test_reconstruct_command_uses_a_rigs_model_unless_told_to_refit(calib, fast_rig,
                                                                      tmp_path, capsys):
     from telefringe.cli import main
-    from telefringe.io.rig import save_rig
-    from telefringe.io.scan import write_scan
+    from telefringe.io.rig_json import save_rig
+    from telefringe.io.scan_json import write_scan
 
     scan, _ = render_scan(fast_rig, plate_at_z(0.2), default_groups(fast_rig), seed=10)
     write_scan(tmp_path / "scan", scan)

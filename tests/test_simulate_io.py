@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from telefringe.cli import main
+from telefringe.io.calibration_json import load_calibration_set
 from telefringe.io.errors import InputError
-from telefringe.io.scan import load_calibration_set, read_scan, write_scan
+from telefringe.io.scan_json import read_scan, write_scan
 from telefringe.io.truth import read_truth, write_truth
 from telefringe.simulate.calibration import (
     mirror_pose,
@@ -163,3 +164,26 @@ def test_cli_hdr_help_names_the_exposures_the_rig_uses(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert ", ".join(f"{e:g}" for e in HDR_EXPOSURES[:-1]) + f" and {HDR_EXPOSURES[-1]:g}" \
         in text, text
+
+
+def test_rig_true_json_holds_the_exact_true_rig():
+    """rig_true.json (through the one JSON converter) keeps every intrinsic and the pose of
+    both devices exactly, and the photometry and target as their dataclasses' fields."""
+    import dataclasses
+
+    from telefringe.devices.telecentric import Intrinsics
+    from telefringe.io.truth import true_rig_to_json
+    from telefringe.simulate.presets import get_preset
+
+    vr = get_preset("paper")
+    doc = json.loads(json.dumps(true_rig_to_json(vr), allow_nan=False))
+    assert doc["format"] == "telefringe-truth-rig" and doc["version"] == 1
+    for name in ("camera", "projector"):
+        dev, d = getattr(vr, name), doc[name]
+        assert Intrinsics(**d["intrinsics"]) == dev.intrinsics
+        assert np.array_equal(d["R_dev_world"], dev.R_dev_world)
+        assert np.array_equal(d["rotvec"], dev.rotvec)
+        assert np.array_equal(d["t_dev_mm"], dev.t_dev)
+        assert np.array_equal(d["axis_world"], dev.axis_world)
+    assert doc["photometry"] == json.loads(json.dumps(dataclasses.asdict(vr.photometry)))
+    assert doc["target"] == json.loads(json.dumps(dataclasses.asdict(vr.target)))

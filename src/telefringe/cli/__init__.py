@@ -55,9 +55,18 @@ def _flags_show_no_type() -> None:
 
 
 def _register_all():
-    from telefringe.cli import calibrate, decode, measure, paper, reconstruct, simulate
+    from telefringe.cli import (
+        calibrate,
+        decode,
+        demo,
+        measure,
+        paper,
+        patterns,
+        reconstruct,
+        simulate,
+    )
 
-    for mod in (simulate, decode, calibrate, reconstruct, measure, paper):
+    for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo):
         mod.register(app)
     # one-line summaries in `telefringe --help`: the first paragraph of each docstring,
     # its hard line breaks joined

@@ -1,4 +1,4 @@
-"""Shared command-line plumbing: console, verbosity, progress bars."""
+"""Shared command-line plumbing: console, verbosity, progress bars, reading a scan."""
 
 from __future__ import annotations
 
@@ -15,7 +15,8 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-__all__ = ["state", "console", "err_console", "progress_bar", "info", "detail"]
+__all__ = ["state", "console", "err_console", "progress_bar", "info", "detail",
+           "read_scan_with_progress"]
 
 console = Console(highlight=False)
 err_console = Console(stderr=True, highlight=False)
@@ -59,3 +60,36 @@ def progress_bar(description: str, total: int | None):
             # a failed step leaves no half-drawn bar: the error stays the one line shown
             prog.live.transient = True
             raise
+
+
+def read_scan_with_progress(folder, manifest=None):
+    """Read a scan folder (:func:`telefringe.io.scan_json.read_scan`) under a progress bar
+    of its images.
+
+    Parameters
+    ----------
+    folder : path-like, the scan folder.
+    manifest : its :class:`~telefringe.fringes.scan.ScanManifest` when already loaded (to
+        count the images), else it is read here.
+
+    Returns
+    -------
+    telefringe.fringes.scan.Scan
+
+    Raises
+    ------
+    InputError
+        As ``read_scan`` does.
+    """
+    from telefringe.io.scan_json import load_scan_manifest, read_scan, scan_image_names
+
+    man = load_scan_manifest(folder) if manifest is None else manifest
+    with progress_bar("reading images", len(scan_image_names(man))) as advance:
+        done = 0
+
+        def tick(k, total):
+            nonlocal done
+            advance(k - done)
+            done = k
+
+        return read_scan(folder, progress=tick)

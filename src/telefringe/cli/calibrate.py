@@ -1,4 +1,5 @@
-"""`telefringe calibrate`: a calibration set folder -> rig.json (+ report plots)."""
+"""`telefringe calibrate`: a calibration set folder -> rig.json (+ report plots, drawn by
+:mod:`telefringe.io.figures.calibration_report`)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import typer
 
 from telefringe.cli._common import console, detail, info, progress_bar, state
 
-__all__ = ["register", "write_report", "parameter_table"]
+__all__ = ["register", "parameter_table"]
 
 
 class _Side(StrEnum):
@@ -83,63 +84,6 @@ def _pose_table(calib):
     return table
 
 
-def write_report(folder: Path, calib) -> list[str]:
-    """Residual plots (PNG) of a calibration into an existing ``folder``; returns names."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    names = []
-    for dev, obs, res, size in (
-            ("camera", calib.camera_observations, calib.residuals_camera,
-             (calib.rig.camera.intrinsics.width, calib.rig.camera.intrinsics.height)),
-            ("projector", calib.projector_observations, calib.residuals_projector,
-             (calib.rig.projector.intrinsics.width, calib.rig.projector.intrinsics.height))):
-        ok = np.all(np.isfinite(res), axis=2) & np.all(np.isfinite(obs), axis=2)
-        o, r = obs[ok], res[ok]
-        fig, ax = plt.subplots(figsize=(8, 6.5))
-        if r.size:
-            scale = float(np.percentile(np.hypot(r[:, 0], r[:, 1]), 95)) or 1.0
-            q = ax.quiver(o[:, 0], o[:, 1], r[:, 0], r[:, 1], np.hypot(r[:, 0], r[:, 1]),
-                          angles="xy", scale_units="xy", scale=scale / (0.04 * size[0]),
-                          cmap="viridis")
-            fig.colorbar(q, ax=ax, label="residual length (px)")
-        ax.set_xlim(0, size[0])
-        ax.set_ylim(size[1], 0)
-        ax.set_aspect("equal")
-        ax.set_xlabel("u (px)")
-        ax.set_ylabel("v (px)")
-        ax.set_title(f"{dev}: reprojection residuals (predicted - observed), exaggerated; "
-                     f"RMS {getattr(calib, 'rms_' + dev):.4f} px", fontsize=9)
-        fname = f"residuals_{dev}.png"
-        fig.savefig(folder / fname, dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        names.append(fname)
-        fig, axs = plt.subplots(1, 2, figsize=(9, 3.5))
-        for k, (ax, lab) in enumerate(zip(axs, ("du", "dv"), strict=True)):
-            if r.size:
-                ax.hist(r[:, k], bins=40, color="tab:blue")
-            ax.set_xlabel(f"{lab} (px)")
-        axs[0].set_ylabel("count")
-        fig.suptitle(f"{dev}: residual distribution")
-        fname = f"histogram_{dev}.png"
-        fig.savefig(folder / fname, dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        names.append(fname)
-    fig, ax = plt.subplots(figsize=(max(6, 0.5 * len(calib.pose_names) + 2), 3.5))
-    x = np.arange(len(calib.pose_names))
-    ax.bar(x - 0.2, calib.rms_per_pose[:, 0], 0.4, label="camera")
-    ax.bar(x + 0.2, calib.rms_per_pose[:, 1], 0.4, label="projector")
-    ax.set_xticks(x, calib.pose_names, rotation=60, fontsize=8)
-    ax.set_ylabel("RMS reprojection error (px)")
-    ax.legend()
-    fig.savefig(folder / "rms_per_pose.png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    names.append("rms_per_pose.png")
-    return names
-
-
 def calibrate_cmd(
     calib_dir: Path = typer.Argument(..., help="Calibration set folder (with calibration.json)."),
     output: Path = typer.Option(..., "-o", "--output", help="rig.json to write."),
@@ -170,9 +114,11 @@ def calibrate_cmd(
     from telefringe.calibration.errors import CalibrationError
     from telefringe.calibration.from_scans import calibrate_from_scans
     from telefringe.io.atomic import atomic_dir, check_can_write
+    from telefringe.io.calibration_json import load_calibration_set
     from telefringe.io.errors import InputError
-    from telefringe.io.rig import save_rig
-    from telefringe.io.scan import load_calibration_set, read_scan
+    from telefringe.io.figures.calibration_report import write_calibration_report
+    from telefringe.io.rig_json import save_rig
+    from telefringe.io.scan_json import read_scan
 
     check_can_write(output, force=force)
     if report is not None:
@@ -212,7 +158,7 @@ def calibrate_cmd(
     info(f"wrote {output}")
     if report is not None:
         with atomic_dir(report, force=force) as tmp:
-            names = write_report(Path(tmp), calib)
+            names = write_calibration_report(Path(tmp), calib)
         info(f"wrote {report}/ ({', '.join(names)})")
 
 

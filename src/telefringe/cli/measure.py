@@ -20,7 +20,7 @@ _JSON_HELP = "Also write the results to this JSON file."
 
 
 def _load(out: Path):
-    from telefringe.io.export import read_points
+    from telefringe.io.points_npz import read_points
 
     return read_points(out)
 
@@ -44,7 +44,7 @@ def _um(x) -> str:
 def _save_json(path: Path | None, obj, force: bool) -> None:
     if path is None:
         return
-    from telefringe.io.export import write_json
+    from telefringe.io.jsonable import write_json
 
     write_json(path, obj, force=force)
     info(f"wrote {path}")
@@ -95,7 +95,7 @@ def plate_cmd(
 
     Example: telefringe measure plate plate_3d --json plate.json
     """
-    from telefringe.io.export import plate_summary
+    from telefringe.io.reports import plate_summary
 
     _check_outputs([json_path], force)
     m = measure_plate_folder(out, rows=rows, cols=cols, pitch=pitch, dark=dark)
@@ -123,7 +123,7 @@ def sphere_cmd(
 
     Example: telefringe measure sphere sphere_3d --json sphere.json
     """
-    from telefringe.io.export import sphere_summary
+    from telefringe.io.reports import sphere_summary
     from telefringe.metrology.core import measure_sphere
 
     _check_outputs([json_path], force)
@@ -145,7 +145,7 @@ def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,
     """Measure the BGA in ``out`` (BGAMeasurement). User problems raise InputError.
     ``free_radius``: fit each cap's radius too (diameters reported, apex heights less
     accurate) instead of the nominal-radius fit through the point-spread model."""
-    from telefringe.io.export import load_points
+    from telefringe.io.points_npz import load_points
     from telefringe.metrology.core import BGANominal, measure_bga
 
     out = Path(out)
@@ -220,7 +220,7 @@ def steps_cmd(
 
     Example: telefringe measure steps steps_3d --json steps.json
     """
-    from telefringe.io.export import steps_summary
+    from telefringe.io.reports import steps_summary
     from telefringe.metrology.core import measure_steps
 
     _check_outputs([json_path], force)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from telefringe.cli._common import detail, info, progress_bar
+from telefringe.cli._common import detail, info, progress_bar, read_scan_with_progress
 
 
 def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
@@ -23,44 +23,20 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     -------
     telefringe.reconstruct.Reconstruction
     """
-    from concurrent.futures import ThreadPoolExecutor
-
     from telefringe.fringes.decode import DecodeError
     from telefringe.fringes.phase import PhaseInputError
     from telefringe.io.atomic import atomic_dir, check_can_write
     from telefringe.io.errors import InputError
-    from telefringe.io.export import (
-        cloud_summary,
-        write_height_png,
-        write_height_tiff,
-        write_json,
-        write_ply,
-        write_points,
-    )
-    from telefringe.io.scan import load_scan_manifest, read_scan
+    from telefringe.io.reconstruction_folder import write_reconstruction
+    from telefringe.io.reports import cloud_summary
     from telefringe.reconstruction.reconstruct import TriangulationError, reconstruct_scan
 
     output = Path(output)
     check_can_write(output, force=force)
+    # the scan's projector and camera sizes are checked against the rig by reconstruct_scan
     # (a RigCalibration from load_rig stands for its Rig, and reconstruct_scan takes the
     # projector nonlinearity it learned)
-    man = load_scan_manifest(scan_dir)
-    kp = rig.projector.intrinsics
-    if kp.width and kp.height and (man.projector_width, man.projector_height) != (
-            kp.width, kp.height):
-        raise InputError(
-            f"{scan_dir}: the scan's patterns are for a {man.projector_width} x "
-            f"{man.projector_height} projector but the rig's projector is {kp.width} x "
-            f"{kp.height}: use the rig.json of the rig that took this scan")
-    n = sum(len(g.images) for g in man.groups) + bool(man.white) + bool(man.black)
-    with progress_bar("reading images", n) as advance:
-        done = [0]
-
-        def tick(k, total):
-            advance(k - done[0])
-            done[0] = k
-
-        data = read_scan(scan_dir, progress=tick)
+    data = read_scan_with_progress(scan_dir)
     with progress_bar("reconstructing", 1) as advance:
         try:
             rec = reconstruct_scan(data, rig, max_residual=max_residual, pixel_mm=pixel_mm,
@@ -79,38 +55,11 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
         summary["heightmap"] = {"pixel_mm": rec.height.pixel_mm,
                                 "shape": list(rec.height.z.shape)}
     with progress_bar("writing", 1) as advance, atomic_dir(output, force=force) as tmp:
-        # what io.export.write_reconstruction writes, the PNG preview drawn from the height
-        # map binned to about the figure's resolution (drawing every pixel of a full-size
-        # map took half a second for no visible difference)
-        # The PNG is drawn on a second thread meanwhile: the other files are mostly
-        # compression and disk writes, which run without the GIL
-        tmp = Path(tmp)
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            png = None
-            if rec.height is not None:
-                png = pool.submit(write_height_png, tmp / "heightmap.png",
-                                  _preview(rec.height), title=title or Path(scan_dir).name)
-            write_points(tmp / "points.npz", rec.cloud, texture=rec.texture,
-                         radiance=rec.radiance)
-            if ply:
-                write_ply(tmp / "cloud.ply", rec.cloud, texture=rec.texture)
-            if rec.height is not None:
-                write_height_tiff(tmp / "heightmap.tif", rec.height)
-            write_json(tmp / "summary.json", summary)
-            if png is not None:
-                png.result()  # its error, if any, raised here
+        write_reconstruction(tmp, rec.cloud, rec.height, texture=rec.texture,
+                             radiance=rec.radiance, title=title or Path(scan_dir).name,
+                             ply=ply, summary=summary)
         advance()
     return rec
-
-
-#: the longer side of the height map drawn in heightmap.png (pixels); the figure's axes
-#: are about 550 px wide
-_PREVIEW_PIXELS = 800
-
-
-def _preview(hm):
-    factor = -(-max(hm.z.shape) // _PREVIEW_PIXELS)
-    return hm.binned(factor)
 
 
 def _prefetch(*modules: str):
@@ -178,7 +127,7 @@ def reconstruct_cmd(
     # third-party leaves only, which nothing else imports meanwhile (two threads importing
     # modules that import each other could see each other's half-initialised modules)
     _prefetch("plyfile", "tifffile", "PIL.Image", "PIL.ImageDraw")
-    from telefringe.io.rig import load_rig
+    from telefringe.io.rig_json import load_rig
 
     rig_obj = load_rig(rig)
     extra = {"phase_errors": None} if refit_gamma else {}

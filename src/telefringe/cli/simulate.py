@@ -72,7 +72,8 @@ def calibration(
     Example: telefringe simulate calibration sim_cal --rig paper --poses 12
     """
     from telefringe.io.atomic import atomic_dir, check_can_write
-    from telefringe.io.scan import write_calibration_manifest, write_scan
+    from telefringe.io.calibration_json import write_calibration_manifest
+    from telefringe.io.scan_json import write_scan
     from telefringe.io.truth import write_rig_truth, write_truth
     from telefringe.simulate.calibration import (
         calibration_manifest,
@@ -127,7 +128,7 @@ def scan(
     """
     from telefringe.io.atomic import atomic_dir, check_can_write
     from telefringe.io.errors import InputError
-    from telefringe.io.scan import write_scan
+    from telefringe.io.scan_json import write_scan
     from telefringe.io.truth import write_rig_truth, write_truth
     from telefringe.simulate.presets import HDR_EXPOSURES, get_preset
     from telefringe.simulate.render import default_groups, render_scan

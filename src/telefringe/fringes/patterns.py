@@ -131,7 +131,7 @@ def pattern_scan(*, width: int, height: int, steps: int, periods, axes=("u", "v"
                  inverse_response=None, bit_depth: int = 8):
     """The projector images of a whole pattern set as a :class:`~telefringe.scan.Scan`
     (stacks shaped (count, height, width); white/black frames when asked), ready for
-    :func:`telefringe.io.scan.write_scan`. With ``gamma`` or ``inverse_response`` the
+    :func:`telefringe.io.scan_json.write_scan`. With ``gamma`` or ``inverse_response`` the
     fringes are pre-compensated (see :func:`precompensate`); Gray codes and white/black
     frames are binary and need none.
     """

@@ -18,59 +18,44 @@ folder holding ``scan.json``), so a decoder can never read the answer by acciden
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
+from telefringe.io import _npz
 from telefringe.io.atomic import atomic_file, write_json_atomic
 from telefringe.io.errors import InputError
+from telefringe.io.jsonable import to_jsonable
 
-__all__ = ["write_truth", "read_truth", "truth_features_to_json", "rig_to_json",
+__all__ = ["write_truth", "read_truth", "truth_features_to_json", "true_rig_to_json",
            "write_rig_truth", "TRUTH_FORMAT"]
 
 TRUTH_FORMAT = "telefringe-truth"
 _ARRAYS = ("xyz_world", "u_p", "v_p", "lit", "visible", "part")
 
 
-def _to_jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _to_jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_to_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _to_jsonable(x.tolist())
-    if isinstance(x, np.bool_ | bool):
-        return bool(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.floating | float):
-        v = float(x)
-        return v if np.isfinite(v) else None
-    return x
-
-
 def truth_features_to_json(features: dict) -> dict:
     """Features as plain JSON values (arrays become nested lists, NaN becomes null)."""
-    return _to_jsonable(features)
+    return to_jsonable(features)
 
 
-def _device_json(dev) -> dict:
-    k = dev.intrinsics
-    return {"intrinsics": {f.name: getattr(k, f.name) for f in dataclasses.fields(k)},
-            "R_dev_world": dev.R_dev_world.tolist(), "rotvec": dev.rotvec.tolist(),
-            "t_dev_mm": dev.t_dev.tolist(),
-            "axis_world": dev.axis_world.tolist()}
+def _device_state(dev) -> dict:
+    """A device's true state as the simulator holds it: every field of its intrinsics (the
+    dataclass as it is, whatever the model) and its pose. The readable, loadable form of a
+    device is rig.json's (:mod:`telefringe.io.rig_json`)."""
+    return {"intrinsics": to_jsonable(dev.intrinsics),
+            "R_dev_world": dev.R_dev_world, "rotvec": dev.rotvec, "t_dev_mm": dev.t_dev,
+            "axis_world": dev.axis_world}
 
 
-def rig_to_json(vrig) -> dict:
-    """The true rig of a :class:`~telefringe.simulate.presets.VirtualRig` as JSON."""
-    return _to_jsonable({
+def true_rig_to_json(vrig) -> dict:
+    """The ``rig_true.json`` document of a :class:`~telefringe.simulate.presets.VirtualRig`:
+    its true devices, photometry and target."""
+    return to_jsonable({
         "format": TRUTH_FORMAT + "-rig", "version": 1, "name": vrig.name,
-        "camera": _device_json(vrig.camera), "projector": _device_json(vrig.projector),
-        "photometry": dataclasses.asdict(vrig.photometry),
-        "target": dataclasses.asdict(vrig.target),
+        "camera": _device_state(vrig.camera), "projector": _device_state(vrig.projector),
+        "photometry": vrig.photometry, "target": vrig.target,
         "world_frame": "calibration target at its reference pose (x along columns, y along "
                        "rows, z toward the camera)",
     })
@@ -88,7 +73,7 @@ def write_rig_truth(folder, vrig, *, force: bool = True) -> Path:
     folder = Path(folder)
     _check_not_in_scan(folder)
     path = folder / "rig_true.json"
-    write_json_atomic(path, rig_to_json(vrig), force=force)
+    write_json_atomic(path, true_rig_to_json(vrig), force=force)
     return path
 
 
@@ -123,7 +108,7 @@ def write_truth(folder, name: str, truth, *, extra: dict | None = None,
            "lit_pixels": int(np.count_nonzero(truth.lit)),
            "features": truth_features_to_json(truth.features)}
     if extra:
-        doc.update(_to_jsonable(extra))
+        doc.update(to_jsonable(extra))
     js = folder / f"{name}.json"
     write_json_atomic(js, doc, force=force)
     return npz, js
@@ -146,11 +131,7 @@ def read_truth(folder, name: str):
         raise InputError(f"{js}: cannot read ground truth ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != TRUTH_FORMAT:
         raise InputError(f"{js}: not a telefringe ground-truth file")
-    try:
-        with np.load(npz, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{npz}: cannot read ground truth arrays ({exc})") from None
+    arrays = _npz.load(npz, "ground truth")
     missing = [k for k in ("xyz_world", "u_p", "v_p", "lit") if k not in arrays]
     if missing:
         raise InputError(f"{npz}: missing arrays {missing}")

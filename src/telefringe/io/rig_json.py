@@ -61,6 +61,7 @@ from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
 from telefringe.geometry.so3 import rotation_from_rotvec, rotvec_from_rotation
 from telefringe.io.atomic import write_json_atomic
 from telefringe.io.errors import InputError
+from telefringe.io.jsonable import number_or_none, to_jsonable
 
 __all__ = ["RIG_FORMAT", "RIG_VERSION", "save_rig", "load_rig", "rig_to_json", "rig_from_json",
            "bare_rig_json"]
@@ -82,17 +83,9 @@ _PHASE_MODEL = ("projector nonlinearity per fringe group: measured wrapped phase
 
 
 # --------------------------------------------------------------------------- writing
-def _num(x) -> float | None:
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
-def _arr(a) -> list:
-    """Nested lists with None for NaN."""
-    a = np.asarray(a, dtype=float)
-    if a.ndim == 0:
-        return _num(a)
-    return [_arr(v) for v in a]
+def _arr(a) -> list | float | None:
+    """Nested lists of floats with None for NaN (a float or None for a scalar)."""
+    return to_jsonable(np.asarray(a, dtype=float))
 
 
 def _device_json(dev: TelecentricDevice) -> dict:
@@ -117,9 +110,10 @@ def rig_to_json(calib: RigCalibration) -> dict:
             "t_mm": _arr(calib.t_world_target[i]) if used else None,
             "rms_px": _arr(calib.rms_per_pose[i])})
     report = {
-        "rms_px": {"camera": _num(calib.rms_camera), "projector": _num(calib.rms_projector)},
-        "sigma_px": {"camera": _num(calib.sigma_camera),
-                     "projector": _num(calib.sigma_projector)},
+        "rms_px": {"camera": number_or_none(calib.rms_camera),
+                   "projector": number_or_none(calib.rms_projector)},
+        "sigma_px": {"camera": number_or_none(calib.sigma_camera),
+                     "projector": number_or_none(calib.sigma_projector)},
         "principal_point": calib.principal_point,
         "principal_point_weak": [bool(v) for v in calib.principal_point_weak],
         "mirror": calib.mirror,

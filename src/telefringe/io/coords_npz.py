@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from telefringe.io import _npz
 from telefringe.io.atomic import atomic_file
 from telefringe.io.errors import InputError
 
@@ -46,13 +47,7 @@ def read_coords(path) -> dict[str, np.ndarray]:
     Raises :class:`InputError` for a missing or malformed file.
     """
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            out = {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise InputError(f"{path}: not found") from None
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: not a coordinates file ({exc})") from None
+    out = _npz.load(path, "coordinates")
     if "mask" not in out or not ({"u_p", "v_p"} & set(out)):
         raise InputError(f"{path}: not a coordinates file (needs 'mask' and 'u_p' or 'v_p')")
     return out

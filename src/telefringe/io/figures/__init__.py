@@ -1,0 +1,1 @@
+"""Figures written as files: one module per figure (PNG)."""

@@ -1,0 +1,118 @@
+"""``points.npz``: the organised point cloud of a reconstruction (see docs/formats.md).
+
+Written atomically; an existing file is replaced only with ``force``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from telefringe.io import _npz
+from telefringe.io.atomic import atomic_file
+from telefringe.io.errors import InputError
+
+__all__ = ["POINTS_FORMAT", "POINTS_VERSION", "write_points", "read_points", "load_points",
+           "PointsFile"]
+
+POINTS_FORMAT = "telefringe-points"
+POINTS_VERSION = 1
+
+
+def write_points(path, cloud, *, texture=None, radiance=None, force: bool = False) -> Path:
+    """Write an organised point cloud to ``path`` (uncompressed .npz).
+
+    Arrays: ``xyz`` (rows, cols, 3) float64 mm, NaN where invalid; ``mask`` bool;
+    ``sigma_z`` float64 mm; ``sigma_line`` float64 mm (along the camera line);
+    ``direction`` (3,) the camera's viewing direction; ``flags`` uint8 (why a point is
+    invalid, ``telefringe.reconstruct.FLAG_*``); ``residual`` float64 projector px (only
+    with both fringe axes); ``texture`` float32 (rows, cols) fringe-free camera image
+    (optional, for marker detection); ``radiance`` float32 (rows, cols) the decoder's
+    background per unit exposure (optional, for BGA highlights); ``format`` and
+    ``version``.
+    """
+    arrays = {
+        "format": np.array(POINTS_FORMAT),
+        "version": np.array(POINTS_VERSION),
+        "xyz": np.ascontiguousarray(cloud.xyz, dtype=np.float64),
+        "mask": np.asarray(cloud.mask, dtype=bool),
+        "sigma_z": np.asarray(cloud.sigma_z, dtype=np.float64),
+        "sigma_line": np.asarray(cloud.sigma_line, dtype=np.float64),
+        "direction": np.asarray(cloud.direction, dtype=np.float64),
+        "flags": np.asarray(cloud.flags, dtype=np.uint8),
+    }
+    if cloud.residual is not None:
+        arrays["residual"] = np.asarray(cloud.residual, dtype=np.float64)
+    for name, img in (("texture", texture), ("radiance", radiance)):
+        if img is not None:
+            t = np.asarray(img, dtype=np.float32)
+            if t.shape != cloud.shape:
+                raise ValueError(f"{name} has shape {t.shape}, the cloud {cloud.shape}")
+            arrays[name] = t
+    path = Path(path)
+    with atomic_file(path, force=force) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    return path
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PointsFile:
+    """Content of ``points.npz``: the cloud and its optional images (float32 or None)."""
+
+    cloud: object
+    texture: np.ndarray | None
+    radiance: np.ndarray | None
+
+
+def read_points(path):
+    """Read ``points.npz`` (or a folder holding it).
+
+    Returns
+    -------
+    cloud : telefringe.reconstruct.PointCloud
+    texture : (rows, cols) float32 ndarray or None
+
+    Raises
+    ------
+    InputError
+        Missing file, not a points file, inconsistent arrays.
+    """
+    pf = load_points(path)
+    return pf.cloud, pf.texture
+
+
+def load_points(path) -> PointsFile:
+    """Like :func:`read_points`, with every optional array (:class:`PointsFile`)."""
+    from telefringe.reconstruction.reconstruct import PointCloud
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "points.npz"
+    arrays = _npz.load(path, "points", missing_hint=" (run 'telefringe reconstruct' first)")
+    if str(arrays.get("format", "")) != POINTS_FORMAT:
+        raise InputError(f"{path}: not a telefringe points file (no format '{POINTS_FORMAT}')")
+    if int(arrays.get("version", -1)) != POINTS_VERSION:
+        raise InputError(f"{path}: points file version {arrays.get('version')} is not "
+                         f"supported (this telefringe reads version {POINTS_VERSION})")
+    for k in ("xyz", "mask", "sigma_line", "direction", "flags"):
+        if k not in arrays:
+            raise InputError(f"{path}: array '{k}' is missing")
+    xyz = arrays["xyz"]
+    if xyz.ndim != 3 or xyz.shape[2] != 3 or xyz.dtype.kind != "f":
+        raise InputError(f"{path}: 'xyz' must be a float (rows, cols, 3) array")
+    shape = xyz.shape[:2]
+    for k in ("mask", "sigma_line", "flags", "residual", "texture", "radiance"):
+        if k in arrays and arrays[k].shape != shape:
+            raise InputError(f"{path}: '{k}' has shape {arrays[k].shape}, expected {shape}")
+    d = np.asarray(arrays["direction"], dtype=np.float64)
+    if d.shape != (3,) or not np.all(np.isfinite(d)) or abs(np.linalg.norm(d) - 1) > 1e-6:
+        raise InputError(f"{path}: 'direction' must be a unit 3-vector")
+    mask = arrays["mask"].astype(bool)
+    if np.any(mask & ~np.all(np.isfinite(xyz), axis=2)):
+        raise InputError(f"{path}: 'mask' marks points whose xyz is not finite")
+    xyz = np.where(mask[..., None], xyz, np.nan).astype(np.float64)
+    cloud = PointCloud(xyz, mask, np.where(mask, arrays["sigma_line"], np.nan),
+                       arrays.get("residual"), arrays["flags"].astype(np.uint8), d)
+    return PointsFile(cloud, arrays.get("texture"), arrays.get("radiance"))

@@ -1,0 +1,78 @@
+"""The folder a reconstruction leaves: ``points.npz``, ``cloud.ply``, ``heightmap.tif`` (+
+``.json``, ``_sigma.tif``), ``heightmap.png`` and ``summary.json``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from telefringe.io.errors import InputError
+from telefringe.io.figures.heightmap_png import write_height_png
+from telefringe.io.jsonable import write_json
+from telefringe.io.ply import write_ply
+from telefringe.io.points_npz import write_points
+from telefringe.io.tiff import write_height_tiff
+
+__all__ = ["write_reconstruction", "preview_map", "PREVIEW_PIXELS"]
+
+
+#: the longer side of the height map drawn in heightmap.png (pixels); the figure's axes
+#: are about 550 px wide
+PREVIEW_PIXELS = 800
+
+
+def preview_map(hm):
+    """``hm`` binned to about the preview's resolution (longer side <= PREVIEW_PIXELS):
+    drawing every pixel of a full-size map took half a second for no visible difference."""
+    return hm.binned(-(-max(hm.z.shape) // PREVIEW_PIXELS))
+
+
+def write_reconstruction(folder, cloud, hm=None, *, texture=None, radiance=None,
+                         title: str | None = None, ply: bool = True,
+                         summary: dict | None = None, force: bool = False) -> dict:
+    """Write ``points.npz``, ``cloud.ply``, ``heightmap.tif`` (+ ``.json``, ``_sigma.tif``),
+    ``heightmap.png`` (of :func:`preview_map`) and ``summary.json`` into an existing
+    ``folder``.
+
+    Parameters
+    ----------
+    folder : path-like, an existing folder.
+    cloud : telefringe.reconstruction.reconstruct.PointCloud
+    hm : HeightMap or None; no height-map files without it.
+    texture, radiance : (rows, cols) arrays or None, kept in points.npz (texture also
+        colours the PLY).
+    title : of the PNG preview.
+    ply : write cloud.ply.
+    summary : JSON-able dict written as summary.json (through
+        :func:`telefringe.io.jsonable.write_json`); none without it.
+    force : replace existing files.
+
+    Returns
+    -------
+    dict
+        name -> Path of what was written.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: not a folder")
+    out = {}
+    # the PNG is drawn on a second thread meanwhile: the other files are mostly
+    # compression and disk writes, which run without the GIL
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        png = None
+        if hm is not None:
+            png = pool.submit(write_height_png, folder / "heightmap.png", preview_map(hm),
+                              title=title, force=force)
+        out["points"] = write_points(folder / "points.npz", cloud, texture=texture,
+                                     radiance=radiance, force=force)
+        if ply:
+            out["ply"] = write_ply(folder / "cloud.ply", cloud, texture=texture, force=force)
+        if hm is not None:
+            out["heightmap"], out["heightmap_json"] = write_height_tiff(
+                folder / "heightmap.tif", hm, force=force)
+        if summary is not None:
+            out["summary"] = write_json(folder / "summary.json", summary, force=force)
+        if png is not None:
+            out["heightmap_png"] = png.result()  # its error, if any, raised here
+    return out

@@ -1,0 +1,137 @@
+"""Compact summaries of results: JSON-ready dicts without per-point arrays (the BGA's is
+in :mod:`telefringe.io.export`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from telefringe.io.jsonable import number_or_none as _f
+from telefringe.io.jsonable import to_jsonable
+
+__all__ = ["cloud_summary", "plane_summary", "plate_summary", "sphere_summary",
+           "steps_summary", "paper_result_to_json"]
+
+
+def cloud_summary(cloud) -> dict:
+    """Counts and uncertainty figures of a point cloud."""
+    from telefringe.reconstruction.reconstruct import (
+        FLAG_INCONSISTENT,
+        FLAG_NO_PHASE,
+        FLAG_NOT_CONVERGED,
+        FLAG_OUTSIDE,
+        FLAG_UNCERTAIN,
+    )
+
+    fl = np.asarray(cloud.flags)
+    sz = np.asarray(cloud.sigma_z)[np.asarray(cloud.mask)]
+    out = {
+        "pixels": int(fl.size), "valid": int(cloud.count),
+        "valid_fraction": _f(cloud.count / max(fl.size, 1)),
+        "invalid": {name: int(np.count_nonzero(fl & bit)) for name, bit in (
+            ("no_phase", FLAG_NO_PHASE), ("inconsistent", FLAG_INCONSISTENT),
+            ("outside_projector", FLAG_OUTSIDE), ("not_converged", FLAG_NOT_CONVERGED),
+            ("uncertain", FLAG_UNCERTAIN))},
+        "sigma_z_median_mm": _f(np.median(sz)) if sz.size and np.isfinite(sz).all() else None,
+        "sigma_z_p95_mm": (_f(np.percentile(sz, 95)) if sz.size and np.isfinite(sz).all()
+                           else None),
+    }
+    if cloud.residual is not None:
+        r = np.asarray(cloud.residual)[np.asarray(cloud.mask)]
+        r = r[np.isfinite(r)]
+        out["residual_median_px"] = _f(np.median(r)) if r.size else None
+        out["residual_p99_px"] = _f(np.percentile(r, 99)) if r.size else None
+    return out
+
+
+def plane_summary(p) -> dict:
+    """A :class:`telefringe.metrology.PlaneFit` without its per-point arrays."""
+    return {"normal": to_jsonable(p.normal), "offset_mm": _f(p.offset),
+            "centroid_mm": to_jsonable(p.centroid), "rms_mm": _f(p.rms),
+            "flatness_mm": _f(p.flatness), "tilt_deg": _f(p.tilt_deg),
+            "n_points": int(p.n_points), "n_inliers": int(p.n_inliers),
+            "sigma_offset_mm": _f(p.sigma_offset)}
+
+
+def plate_summary(m) -> dict:
+    """A :class:`telefringe.metrology.PlateMeasurement` as in the paper's Table 3."""
+    sp = m.spacing
+    return {
+        "z_mm": _f(m.z.distance), "sigma_z_mm": _f(m.z.sigma),
+        "angle_to_reference_deg": _f(m.z.angle_deg),
+        "plane": plane_summary(m.plane),
+        "spacing": {
+            "nominal_mm": _f(sp.nominal_mm),
+            "mean_x_mm": _f(sp.mean_x), "mean_y_mm": _f(sp.mean_y),
+            "abs_err_x_mm": _f(sp.abs_err_x), "abs_err_y_mm": _f(sp.abs_err_y),
+            "std_x_mm": _f(sp.std_x), "std_y_mm": _f(sp.std_y),
+            "rms_err_x_mm": _f(sp.rms_err_x), "rms_err_y_mm": _f(sp.rms_err_y),
+            "n_x": int(sp.n_x), "n_y": int(sp.n_y),
+            "dist_x_mm": to_jsonable(sp.dist_x), "dist_y_mm": to_jsonable(sp.dist_y),
+        },
+        "markers": {"measured": int(np.count_nonzero(m.centres.valid)),
+                    "centres_mm": to_jsonable(m.centres.xyz),
+                    "sigma_mm": to_jsonable(m.centres.sigma_xyz)},
+    }
+
+
+def sphere_summary(f, base=None) -> dict:
+    """A :class:`telefringe.metrology.SphereFit` (and its base plane)."""
+    out = {"centre_mm": to_jsonable(f.centre), "radius_mm": _f(f.radius),
+           "diameter_mm": _f(f.diameter), "sigma_centre_mm": to_jsonable(f.sigma_centre),
+           "sigma_radius_mm": _f(f.sigma_radius), "rms_mm": _f(f.rms),
+           "form_error_mm": _f(f.form_error), "n_points": int(f.n_points),
+           "n_inliers": int(f.n_inliers)}
+    if base is not None:
+        out["base_plane"] = plane_summary(base)
+    return out
+
+
+def steps_summary(m) -> dict:
+    """A :class:`telefringe.metrology.StepMeasurement` without the label image."""
+    return {"levels": int(len(m.offsets)), "normal": to_jsonable(m.normal),
+            "heights_mm": to_jsonable(m.heights),
+            "sigma_heights_mm": to_jsonable(m.sigma_heights),
+            "step_heights_mm": to_jsonable(m.step_heights),
+            "sigma_steps_mm": to_jsonable(m.sigma_steps), "rms_mm": to_jsonable(m.rms),
+            "n_points": to_jsonable(m.n_points)}
+
+
+def paper_result_to_json(result) -> dict:
+    """A JSON-able summary of :class:`telefringe.simulate.experiments.PaperResult`."""
+    from telefringe.simulate.experiments import PAPER_TABLE3, PAPER_TABLE4
+
+    cal = result.calibration
+    plate = []
+    for r in result.plate:
+        paper = PAPER_TABLE3.get(r.position)
+        plate.append({
+            "position_mm": r.position, "mean_x_mm": r.mean_x, "mean_y_mm": r.mean_y,
+            "z_mm": r.z, "abs_err_x_mm": r.err_x, "abs_err_y_mm": r.err_y,
+            "abs_err_z_mm": r.err_z, "std_x_mm": r.std_x, "std_y_mm": r.std_y,
+            "n_x": r.n_x, "n_y": r.n_y, "sigma_z_mm": r.sigma_z,
+            "paper": None if paper is None else dict(zip(
+                ("mean_x_mm", "mean_y_mm", "z_mm", "abs_err_x_mm", "abs_err_y_mm",
+                 "abs_err_z_mm", "std_x_mm", "std_y_mm"), paper, strict=True)),
+        })
+    b = result.bga
+    return {
+        "rig": result.rig_name, "quick": result.quick,
+        "calibration": {"rms_camera_px": float(cal.rms_camera),
+                        "rms_projector_px": float(cal.rms_projector),
+                        "poses_used": int(np.count_nonzero(cal.used)),
+                        "warnings": list(cal.warnings)},
+        "table3": plate,
+        "table4": {
+            "pairs": [{"a": list(p.a), "b": list(p.b), "distance_mm": p.distance,
+                       "truth_mm": p.truth, "error_mm": p.error} for p in b.pairs],
+            "paper_pairs": [{"distance_mm": d, "error_mm": e} for d, e in PAPER_TABLE4],
+            "pitch_error_max_mm": b.pitch_error_max, "n_pairs": b.n_pairs,
+            "apex_rms_error_mm": b.apex_rms_error, "apex_max_error_mm": b.apex_max_error,
+            "coplanarity_mm": b.coplanarity, "coplanarity_truth_mm": b.coplanarity_truth,
+            "n_present": b.n_present, "n_found": b.n_found,
+            "missing_truth": [list(m) for m in b.missing_truth],
+            "missing_reported": [list(m) for m in b.missing_reported],
+            "valid_fraction_ball_pixels": b.valid_fraction_balls,
+        },
+        "timings_s": {k: float(v) for k, v in result.timings.items()},
+    }
