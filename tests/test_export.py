@@ -23,7 +23,7 @@ from telefringe.io.export import (
     write_points,
     write_reconstruction,
 )
-from telefringe.metrology.core import BGANominal, fit_plane, measure_bga
+from telefringe.metrology import BGANominal, fit_plane, measure_bga
 from telefringe.reconstruction.reconstruct import PointCloud, height_map
 
 PNG_SIG = b"\x89PNG\r\n\x1a\n"

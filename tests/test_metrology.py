@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-from telefringe.metrology.core import (
+from telefringe.metrology import (
     BGANominal,
     MetrologyError,
     Plane,
@@ -571,7 +571,7 @@ def test_gauss_spots_batched_matches_scipy():
     from scipy.optimize import least_squares
     from scipy.special import erf
 
-    from telefringe.metrology.core import _gauss_spots
+    from telefringe.metrology.bga.highlights import _gauss_spots
 
     rng = np.random.default_rng(7)
     vv, uu = np.mgrid[0:7, 0:7].astype(float)

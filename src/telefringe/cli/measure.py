@@ -26,7 +26,7 @@ def _load(out: Path):
 
 
 def _metrology_errors():
-    from telefringe.metrology.core import MetrologyError
+    from telefringe.metrology import MetrologyError
 
     return MetrologyError
 
@@ -63,7 +63,7 @@ def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3
                          dark: bool = True):
     """Detect the circle grid in ``out``'s texture and measure the plate
     (PlateMeasurement). User problems raise InputError."""
-    from telefringe.metrology.core import measure_plate
+    from telefringe.metrology import measure_plate
     from telefringe.targets.circle_grid import detect_circle_grid
 
     out = Path(out)
@@ -124,7 +124,7 @@ def sphere_cmd(
     Example: telefringe measure sphere sphere_3d --json sphere.json
     """
     from telefringe.io.export import sphere_summary
-    from telefringe.metrology.core import measure_sphere
+    from telefringe.metrology import measure_sphere
 
     _check_outputs([json_path], force)
     cloud, _ = _load(out)
@@ -146,7 +146,7 @@ def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,
     ``free_radius``: fit each cap's radius too (diameters reported, apex heights less
     accurate) instead of the nominal-radius fit through the point-spread model."""
     from telefringe.io.export import load_points
-    from telefringe.metrology.core import BGANominal, measure_bga
+    from telefringe.metrology import BGANominal, measure_bga
 
     out = Path(out)
     pf = load_points(out)
@@ -221,7 +221,7 @@ def steps_cmd(
     Example: telefringe measure steps steps_3d --json steps.json
     """
     from telefringe.io.export import steps_summary
-    from telefringe.metrology.core import measure_steps
+    from telefringe.metrology import measure_steps
 
     _check_outputs([json_path], force)
     cloud, _ = _load(out)

@@ -230,7 +230,7 @@ def run_calibration(vrig: VirtualRig, *, n_poses: int, seed: int = 0,
 
 def run_plate(vrig: VirtualRig, rig: Rig, position: float, *, seed: int = 0) -> PlateRow:
     """Scan the circle plate raised to Z = ``position`` mm and measure it (Table 3 row)."""
-    from telefringe.metrology.core import measure_plate
+    from telefringe.metrology import measure_plate
     from telefringe.reconstruction.reconstruct import reconstruct_scan
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import plate_at_z
@@ -281,8 +281,8 @@ def _five_pairs(meas, rows: int, cols: int) -> list[tuple[tuple[int, int], tuple
 
 def run_bga(vrig: VirtualRig, rig: Rig, *, seed: int = 0, hdr: bool = True) -> BGAResult:
     """Scan the default BGA (HDR unless ``hdr`` is False), measure it, compare with truth."""
-    from telefringe.metrology.core import BGANominal, measure_bga, seating_plane_coplanarity
-    from telefringe.metrology.core import Plane as _Plane
+    from telefringe.metrology import BGANominal, measure_bga, seating_plane_coplanarity
+    from telefringe.metrology import Plane as _Plane
     from telefringe.reconstruction.reconstruct import reconstruct_scan
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import default_bga

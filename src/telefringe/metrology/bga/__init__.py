@@ -1,0 +1,17 @@
+"""BGA inspection, a module per stage.
+
+- :mod:`.nominal`: the nominal grid (:class:`BGANominal`);
+- :mod:`.measure`: :func:`measure_bga`, the stages in order;
+- :mod:`.caps`: one cap fitted on its own; :mod:`.psf`: all caps through a point-spread
+  model; :mod:`.highlights`: centres from specular highlights;
+- :mod:`.grid`: registration on the nominal grid; :mod:`.coplanarity`: the JEDEC
+  seating plane; :mod:`.result`: :class:`BGAMeasurement`.
+"""
+
+from telefringe.metrology.bga.coplanarity import Coplanarity, seating_plane_coplanarity
+from telefringe.metrology.bga.measure import measure_bga
+from telefringe.metrology.bga.nominal import BGANominal
+from telefringe.metrology.bga.result import BGAMeasurement
+
+__all__ = ["BGANominal", "BGAMeasurement", "Coplanarity", "measure_bga",
+           "seating_plane_coplanarity"]
