@@ -9,6 +9,7 @@ import pytest
 
 from telefringe.metrology import (
     BGANominal,
+    BGAOptions,
     MetrologyError,
     Plane,
     fit_plane,
@@ -371,7 +372,7 @@ def test_bga_balls_heights_pitch_missing():
     cloud, present, offs, apex = bga_cloud()
     nom = BGANominal(rows=6, cols=7, pitch_mm=0.8, ball_diameter_mm=0.45)
     # free-radius sphere fits (no point-spread model)
-    m = measure_bga(cloud, nom, psf_model=False)
+    m = measure_bga(cloud, nom, options=BGAOptions(cap_model="free"))
     assert m.n_balls == present.sum()
     assert set(m.missing) == {(2, 3), (0, 0)}
     assert m.unexpected == ()
@@ -411,7 +412,7 @@ def test_bga_point_spread_model(s2):
     assert np.sqrt(np.mean((err / m.sigma_height) ** 2)) < 1.5
     assert np.sqrt(np.mean(err**2)) < 0.6e-3
     if s2 > 0:
-        plain = measure_bga(cloud, nom, psf_model=False, fixed_radius=True)
+        plain = measure_bga(cloud, nom, options=BGAOptions(cap_model="fixed"))
         bias = np.mean(plain.height - (0.35 + offs)[present])
         assert bias < -0.5 * s2 / 0.225
 

@@ -20,9 +20,12 @@ Modules: :mod:`.planes`, :mod:`.plate` (circle-marker plates), :mod:`.spheres`,
 
 from telefringe.metrology._common import MetrologyError
 from telefringe.metrology.bga import (
+    NOT_MEASURED_REASONS,
     BGAMeasurement,
     BGANominal,
+    BGAOptions,
     Coplanarity,
+    PSFSolveWarning,
     measure_bga,
     seating_plane_coplanarity,
 )
@@ -55,6 +58,9 @@ __all__ = [
     "fit_sphere",
     "measure_sphere",
     "BGANominal",
+    "BGAOptions",
+    "NOT_MEASURED_REASONS",
+    "PSFSolveWarning",
     "Coplanarity",
     "BGAMeasurement",
     "seating_plane_coplanarity",

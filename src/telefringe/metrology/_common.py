@@ -13,10 +13,15 @@ class MetrologyError(ValueError):
     """A measurement cannot be made from this input (too few points, degenerate shape)."""
 
 
-def _readonly(*arrays):
-    for a in arrays:
+def _freeze(obj, *names):
+    """Replace the array fields ``names`` of the frozen dataclass ``obj`` by read-only
+    copies: the caller's arrays are neither changed nor made read-only."""
+    for name in names:
+        a = getattr(obj, name)
         if isinstance(a, np.ndarray):
+            a = a.copy()
             a.setflags(write=False)
+            object.__setattr__(obj, name, a)
 
 
 def _tangent_basis(n: np.ndarray) -> np.ndarray:

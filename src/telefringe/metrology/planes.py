@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from telefringe.metrology._common import _MAD, _TUKEY_C, MetrologyError, _readonly, _tangent_basis
+from telefringe.metrology._common import _MAD, _TUKEY_C, MetrologyError, _freeze, _tangent_basis
 from telefringe.reconstruction.reconstruct import PointCloud
 
 
@@ -26,7 +26,7 @@ class Plane:
         n = n / nn
         if n[2] < 0:
             n, off = -n, -off
-        _readonly(n)
+        n.setflags(write=False)
         object.__setattr__(self, "normal", n)
         object.__setattr__(self, "offset", off)
 
@@ -76,7 +76,7 @@ class PlaneFit(Plane):
 
     def __post_init__(self):
         super().__post_init__()
-        _readonly(self.centroid, self.inliers, self.tangent, self.tilt_covariance)
+        _freeze(self, "centroid", "inliers", "tangent", "tilt_covariance")
 
     @property
     def plane(self) -> Plane:

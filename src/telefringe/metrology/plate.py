@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from telefringe.metrology._common import _MAD, MetrologyError, _poly_design, _readonly
+from telefringe.metrology._common import _MAD, MetrologyError, _freeze, _poly_design
 from telefringe.metrology.planes import Plane, PlaneDistance, PlaneFit, fit_plane, plane_distance
 from telefringe.reconstruction.reconstruct import PointCloud
 
@@ -30,7 +30,7 @@ class MarkerCentres:
     valid: np.ndarray
 
     def __post_init__(self):
-        _readonly(self.xyz, self.sigma_xyz, self.n_points, self.valid)
+        _freeze(self, "xyz", "sigma_xyz", "n_points", "valid")
 
 
 def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None = None,
@@ -177,7 +177,7 @@ class GridSpacing:
     n_y: int
 
     def __post_init__(self):
-        _readonly(self.dist_x, self.dist_y)
+        _freeze(self, "dist_x", "dist_y")
 
 
 def grid_spacing(centres_xyz, *, rows: int, cols: int, pitch_mm: float) -> GridSpacing:

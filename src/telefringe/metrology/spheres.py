@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from telefringe.metrology._common import _MAD, MetrologyError, _components, _readonly
+from telefringe.metrology._common import _MAD, MetrologyError, _components, _freeze
 from telefringe.metrology.planes import PlaneFit, _tls_plane, fit_plane
 from telefringe.reconstruction.reconstruct import PointCloud
 
@@ -35,7 +35,7 @@ class SphereFit:
     covariance: np.ndarray
 
     def __post_init__(self):
-        _readonly(self.centre, self.inliers, self.covariance)
+        _freeze(self, "centre", "inliers", "covariance")
 
     @property
     def sigma_centre(self) -> np.ndarray:

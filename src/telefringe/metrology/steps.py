@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from telefringe.metrology._common import _MAD, MetrologyError, _readonly, _tangent_basis
+from telefringe.metrology._common import _MAD, MetrologyError, _freeze, _tangent_basis
 from telefringe.reconstruction.reconstruct import PointCloud
 
 
@@ -39,9 +39,8 @@ class StepMeasurement:
     labels: np.ndarray
 
     def __post_init__(self):
-        _readonly(self.normal, self.offsets, self.heights, self.sigma_heights,
-                  self.step_heights, self.sigma_steps, self.rms, self.n_points,
-                  self.centroids, self.labels)
+        _freeze(self, "normal", "offsets", "heights", "sigma_heights", "step_heights",
+                "sigma_steps", "rms", "n_points", "centroids", "labels")
 
 
 def _level_peaks(h: np.ndarray, *, min_step: float, min_points: int, bin_mm: float):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from telefringe.metrology._common import MetrologyError
@@ -13,6 +15,25 @@ def _apex_sigma(fit: SphereFit, n: np.ndarray) -> float:
     C = fit.covariance
     g = np.concatenate([n, [1.0]])
     return float(np.sqrt(max(g @ C @ g, 0.0)))
+
+
+class CapFit(NamedTuple):
+    """One ball's cap fit, or why there is none.
+
+    fit : SphereFit or None.   reason : None, or a key of
+    :data:`telefringe.metrology.bga.result.NOT_MEASURED_REASONS` when ``fit`` is None.
+    radius_free : the radius was fitted (else the nominal one was used).
+    points, weights : (m, 3), (m,), the points of the fit (moved by the point-spread
+        model when it was used) and their weights; dcentre_dtheta : (3, p), the centre's
+        sensitivity to the common point-spread parameters (point-spread fits only).
+    """
+
+    fit: SphereFit | None
+    reason: str | None
+    radius_free: bool = False
+    points: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    dcentre_dtheta: np.ndarray | None = None
 
 
 def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
@@ -34,7 +55,7 @@ def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
         ok &= np.isfinite(sig) & (sig > 0)
     pts, sig = pts[ok], sig[ok]
     if pts.shape[0] < 10:
-        return None
+        return CapFit(None, "too_few_points")
     w = None
     if weighted or max_view_angle_deg is not None:
         f0 = fit_sphere(pts, robust=True, radius=D / 2)
@@ -45,7 +66,7 @@ def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
         if max_view_angle_deg is not None:
             keep = cos_t >= np.cos(np.radians(max_view_angle_deg))
         if np.count_nonzero(keep) < 10:
-            return None
+            return CapFit(None, "too_few_points_facing_camera")
         pts, cos_t, sig = pts[keep], cos_t[keep], sig[keep]
         if weighted:
             w = 1.0 / (sig * cos_t) ** 2
@@ -61,5 +82,20 @@ def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
     if f is None:
         f = fit_sphere(pts, weights=w, robust=True, radius=D / 2)
         if not f.rms < 0.1 * D:  # not a cap of the nominal ball
-            return None
-    return f, free
+            return CapFit(None, "fit_rms_too_large")
+    return CapFit(f, None, radius_free=free)
+
+
+def fit_caps_alone(caps, view: np.ndarray, D: float, *, weighted: bool,
+                   max_view_angle_deg: float | None, fixed_radius: bool) -> list[CapFit]:
+    """Each cap of ``caps`` (list of (pts (m, 3), sigma_line (m,), _)) fitted on its own
+    (see :func:`_fit_cap`); a fit that raises is reported as ``fit_failed``."""
+    out = []
+    for pts, sig, _ in caps:
+        try:
+            out.append(_fit_cap(pts, sig, view, D, weighted=weighted,
+                                max_view_angle_deg=max_view_angle_deg,
+                                fixed_radius=fixed_radius))
+        except MetrologyError:
+            out.append(CapFit(None, "fit_failed"))
+    return out

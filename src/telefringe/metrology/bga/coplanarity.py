@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from telefringe.metrology._common import MetrologyError, _readonly, _tangent_basis
+from telefringe.metrology._common import MetrologyError, _freeze, _tangent_basis
 from telefringe.metrology.planes import Plane
 
 
@@ -30,7 +30,7 @@ class Coplanarity:
     offset: float
 
     def __post_init__(self):
-        _readonly(self.distances, self.contacts, self.normal)
+        _freeze(self, "distances", "contacts", "normal")
 
 
 def seating_plane_coplanarity(apexes, centre_of_gravity, *, reference: Plane) -> Coplanarity:

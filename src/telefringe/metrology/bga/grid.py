@@ -68,3 +68,31 @@ def _register_grid(pos: np.ndarray, pitch: float, rows: int, cols: int,
     idx[on_grid, 1] = k[on_grid, 0] - kmin[0] + sj
     origin_local = (np.array([kmin[0] - sj, kmin[1] - si]) + off) * pitch
     return idx, theta, origin_local, span
+
+
+def _grid_local(pos: np.ndarray, theta: float, origin_local: np.ndarray) -> np.ndarray:
+    """Positions (n, 2) on the substrate plane in the grid's frame (mm): x' along the
+    columns, y' along the rows, (0, 0) at grid position (0, 0)."""
+    c, s = np.cos(theta), np.sin(theta)
+    return pos @ np.array([[c, -s], [s, c]]) - origin_local
+
+
+def _claim_positions(pos: np.ndarray, pitch: float, theta: float, origin_local: np.ndarray,
+                     rows: int, cols: int, *, min_share: float = 0.25) -> list:
+    """Grid positions (i, j) covered by a region whose points lie at ``pos`` (m, 2) on the
+    substrate plane: a position is covered when it holds at least ``min_share`` of the
+    points and their mean lies within 0.3 pitch of the position (so a region between two
+    positions claims neither, and one spanning two balls claims both)."""
+    if pos.shape[0] == 0:
+        return []
+    f = _grid_local(pos, theta, origin_local) / pitch
+    k = np.round(f).astype(np.int64)  # (j, i)
+    out = []
+    cells, inverse, counts = np.unique(k, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    for c, (j, i) in enumerate(cells):
+        if counts[c] < min_share * pos.shape[0] or not (0 <= i < rows and 0 <= j < cols):
+            continue
+        if np.all(np.abs(f[inverse == c].mean(axis=0) - (j, i)) < 0.3):
+            out.append((int(i), int(j)))
+    return out

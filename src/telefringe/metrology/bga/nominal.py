@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from telefringe.metrology._common import MetrologyError, _readonly
+from telefringe.metrology._common import MetrologyError
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,7 +45,7 @@ class BGANominal:
             p = np.array(self.present, dtype=bool)
             if p.shape != (self.rows, self.cols):
                 raise MetrologyError(f"present must have shape ({self.rows}, {self.cols})")
-            _readonly(p)
+            p.setflags(write=False)
             object.__setattr__(self, "present", p)
 
     def populated(self) -> np.ndarray:

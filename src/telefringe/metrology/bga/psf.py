@@ -3,11 +3,36 @@ ball), and the brightness-gradient terms of that model."""
 
 from __future__ import annotations
 
+import warnings
+from typing import NamedTuple
+
 import numpy as np
 
 from telefringe.metrology._common import MetrologyError
+from telefringe.metrology.bga.caps import CapFit
 from telefringe.metrology.spheres import fit_sphere
 from telefringe.reconstruction.reconstruct import PointCloud
+
+
+class PSFSolveWarning(RuntimeWarning):
+    """The common point-spread parameters could not be estimated from the caps: the
+    caps were fitted without the point-spread correction and ``psf_variance`` is NaN."""
+
+
+class PSFCapFits(NamedTuple):
+    """Result of :func:`_fit_caps_smoothed`.
+
+    caps : list of CapFit, one per input cap.   theta : (p,) the common parameters
+    (s^2 in mm^2 first), NaN when the solve failed.   cov_theta : (p, p), NaN likewise.
+    rounds : Gauss-Newton rounds run.   converged : bool.   n_balls : balls in the solve.
+    """
+
+    caps: list
+    theta: np.ndarray
+    cov_theta: np.ndarray
+    rounds: int
+    converged: bool
+    n_balls: int
 
 
 def _smoothing_shape(pts: np.ndarray, centre: np.ndarray, r: float, view: np.ndarray):
@@ -66,8 +91,53 @@ def _brightness_gradient_terms(cloud: PointCloud, image: np.ndarray, projector,
     return B, False
 
 
+def _cap_residuals(pts: np.ndarray, R: np.ndarray, centre: np.ndarray, theta: np.ndarray,
+                   r: float, view: np.ndarray):
+    """Radial residuals of a cap's points moved by the point-spread model, and their
+    Jacobians.
+
+    The point p_i moves up the viewing direction by R_i . theta: q_i = p_i + (R_i . theta)
+    view; its residual is |q_i - centre| - r. Returns (res (m,), J (m, 3) = d res /
+    d centre, K (m, p) = d res / d theta).
+    """
+    q = pts + np.outer(R @ theta, view)
+    v = q - centre
+    dist = np.linalg.norm(v, axis=1)
+    nn = v / dist[:, None]
+    return dist - r, -nn, (nn @ view)[:, None] * R
+
+
+def _schur_normal_equations(terms, npar: int):
+    """Gauss-Newton normal equations of the common parameters theta with every ball's
+    centre eliminated (Schur complement).
+
+    ``terms``: per ball (res (m,), J (m, 3), K (m, p), w (m,)). With H = J^T W J the
+    ball's centre block, the reduced system is A = sum K^T W K - K^T W J H^-1 J^T W K,
+    b = sum K^T W res - K^T W J H^-1 J^T W res; the step is -A^-1 b. Returns (A, b, chi2,
+    dof); balls whose H is singular are left out.
+    """
+    A = np.zeros((npar, npar))
+    bvec = np.zeros(npar)
+    chi2 = 0.0
+    dof = 0
+    for res, J, K, wk in terms:
+        H = J.T @ (wk[:, None] * J)
+        try:
+            HiJK = np.linalg.solve(H, J.T @ (wk[:, None] * K))
+            HiJf = np.linalg.solve(H, J.T @ (wk * res))
+        except np.linalg.LinAlgError:
+            continue
+        KW = K.T * wk
+        A += KW @ K - (KW @ J) @ HiJK
+        bvec += KW @ res - (KW @ J) @ HiJf
+        chi2 += float(res @ (wk * res))
+        dof += res.size - 3
+    return A, bvec, chi2, dof
+
+
 def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: float,
-                       free_gradient: bool, sub_every: int = 4, rounds: int = 6):
+                       free_gradient: bool, sub_every: int = 4,
+                       rounds: int = 6) -> PSFCapFits:
     """Fixed-radius cap fits that model the camera's point spread, and its variance.
 
     ``caps``: list of (pts (m, 3), sig (m,), B (m, 3)) per ball (B: see
@@ -77,32 +147,41 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
     radius ``r`` weighted by 1 / (sigma_line cos(tilt))^2. The global parameters
     theta = (s^2[, a1, a2]), common to every ball (one camera, one rig), are estimated by
     Gauss-Newton on all balls' residuals at once (Schur complement of the per-ball
-    centres), on every ``sub_every``-th ball.
+    centres, :func:`_schur_normal_equations`), on every ``sub_every``-th ball.
 
-    Returns (fits (list of SphereFit or None), data (per ball: corrected points of the
-    fit, their weights, and d(centre)/d(theta) (3, p)), theta (p,), cov_theta (p, p)).
+    When the common parameters cannot be estimated (no ball usable, or a singular
+    system), a :class:`PSFSolveWarning` is issued, theta and its covariance are NaN and
+    the caps are fitted with theta = 0 (no point-spread correction).
+
+    Returns
+    -------
+    PSFCapFits
     """
     cos_min = np.cos(np.radians(max_view_angle_deg))
     npar = 3 if free_gradient else 1
     sel = []
+    reasons = []
     for pts, sig, bg in caps:
         ok = (np.all(np.isfinite(pts), axis=1) & np.isfinite(sig) & (sig > 0)
               & np.all(np.isfinite(bg), axis=1))
         pts, sig, bg = pts[ok], sig[ok], bg[ok]
+        item, why = None, None
         if pts.shape[0] < 10:
-            sel.append(None)
-            continue
-        try:
-            f0 = fit_sphere(pts, robust=True, radius=r)
-        except MetrologyError:
-            sel.append(None)
-            continue
-        cos_t, _ = _smoothing_shape(pts, f0.centre, r, view)
-        keep = cos_t >= cos_min
-        if np.count_nonzero(keep) < 10:
-            sel.append(None)
-            continue
-        sel.append((pts[keep], sig[keep], bg[keep], f0.centre))
+            why = "too_few_points"
+        else:
+            try:
+                f0 = fit_sphere(pts, robust=True, radius=r)
+            except MetrologyError:
+                why = "fit_failed"
+            else:
+                cos_t, _ = _smoothing_shape(pts, f0.centre, r, view)
+                keep = cos_t >= cos_min
+                if np.count_nonzero(keep) < 10:
+                    why = "too_few_points_facing_camera"
+                else:
+                    item = (pts[keep], sig[keep], bg[keep], f0.centre)
+        sel.append(item)
+        reasons.append(why)
 
     def fit_one(item, theta):
         pts, sig, bg, c = item
@@ -112,58 +191,59 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
         w = 1.0 / (sig * cos_t) ** 2
         f = fit_sphere(q, weights=w, robust=True, radius=r, start=c)
         m = f.inliers
-        v = q[m] - f.centre
-        dist = np.linalg.norm(v, axis=1)
-        nn = v / dist[:, None]
-        J = -nn  # d res / d centre
-        K = (nn @ view)[:, None] * R[m]  # d res / d theta
-        H = J.T @ (w[m][:, None] * J)
-        return f, q, w, J, K, dist - r, H
+        res, J, K = _cap_residuals(pts[m], R[m], f.centre, theta, r, view)
+        return f, q, w, J, K, res
 
     theta = np.zeros(npar)
-    cov = np.full((npar, npar), np.inf)
+    cov = np.full((npar, npar), np.nan)
     sub = [k for k, it in enumerate(sel) if it is not None][::max(int(sub_every), 1)]
-    for _ in range(rounds):
-        A = np.zeros((npar, npar))
-        bvec = np.zeros(npar)
-        chi2 = 0.0
-        dof = 0
+    converged = False
+    failed = not sub
+    n_rounds = 0
+    for _ in range(rounds if sub else 0):
+        n_rounds += 1
+        terms = []
         for k in sub:
             try:
-                f, q, w, J, K, res, H = fit_one(sel[k], theta)
+                f, q, w, J, K, res = fit_one(sel[k], theta)
             except MetrologyError:
                 continue
-            wk = w[f.inliers]
-            try:
-                HiJK = np.linalg.solve(H, J.T @ (wk[:, None] * K))
-                HiJf = np.linalg.solve(H, J.T @ (wk * res))
-            except np.linalg.LinAlgError:
-                continue
-            KW = K.T * wk
-            A += KW @ K - (KW @ J) @ HiJK
-            bvec += KW @ res - (KW @ J) @ HiJf
-            chi2 += float(res @ (wk * res))
-            dof += res.size - 3
+            terms.append((res, J, K, w[f.inliers]))
+        A, bvec, chi2, dof = _schur_normal_equations(terms, npar)
         try:
             step = -np.linalg.solve(A, bvec)
             cov = chi2 / max(dof - npar, 1) * np.linalg.inv(A)
         except np.linalg.LinAlgError:
+            failed = True
             break
         theta = theta + step
         # stop well inside the estimate's own uncertainty
         if abs(step[0]) < 0.05 * np.sqrt(cov[0, 0]):
+            converged = True
             break
-    fits = []
-    data = []
-    for it in sel:
-        f = None
-        if it is not None:
-            try:
-                f, q, w, J, K, _, H = fit_one(it, theta)
-                # the centre's sensitivity to theta (at its optimum: H dc = -J^T W K dth)
-                dc = -np.linalg.solve(H, J.T @ (w[f.inliers][:, None] * K))
-            except (MetrologyError, np.linalg.LinAlgError):
-                f = None
-        fits.append(f)
-        data.append(None if f is None else (q[f.inliers], w[f.inliers], dc))
-    return fits, data, theta, cov
+    if failed or not np.all(np.isfinite(theta)):
+        warnings.warn(
+            f"the point-spread variance could not be estimated from {len(sub)} ball(s) "
+            "(singular system): the caps are fitted without the point-spread correction, "
+            "psf_variance is NaN", PSFSolveWarning, stacklevel=3)
+        theta_fit = np.zeros(npar)
+        theta = np.full(npar, np.nan)
+        cov = np.full((npar, npar), np.nan)
+    else:
+        theta_fit = theta
+    out = []
+    for it, why in zip(sel, reasons, strict=True):
+        if it is None:
+            out.append(CapFit(None, why))
+            continue
+        try:
+            f, q, w, J, K, _ = fit_one(it, theta_fit)
+            wk = w[f.inliers]
+            # the centre's sensitivity to theta (at its optimum: H dc = -J^T W K dth)
+            H = J.T @ (wk[:, None] * J)
+            dc = -np.linalg.solve(H, J.T @ (wk[:, None] * K))
+        except (MetrologyError, np.linalg.LinAlgError):
+            out.append(CapFit(None, "fit_failed"))
+            continue
+        out.append(CapFit(f, None, points=q[f.inliers], weights=wk, dcentre_dtheta=dc))
+    return PSFCapFits(out, theta, cov, n_rounds, converged, len(sub))

@@ -6,10 +6,27 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from telefringe.metrology._common import _readonly
+from telefringe.metrology._common import _freeze
 from telefringe.metrology.bga.coplanarity import Coplanarity
 from telefringe.metrology.bga.nominal import BGANominal
 from telefringe.metrology.planes import PlaneFit
+
+#: Why a ball that is seen (something stands above the substrate at its grid position)
+#: could not be measured.
+NOT_MEASURED_REASONS = {
+    "region_too_small": "the region standing above the substrate is smaller than "
+                        "min_fraction of a ball's footprint (shadowed, or few valid pixels)",
+    "region_too_large": "the region is wider than two ball diameters or larger than three "
+                        "footprints (merged with a neighbour or with debris)",
+    "too_few_points": "fewer than 10 valid cap points are left after the edge, height and "
+                      "highlight cuts",
+    "too_few_points_facing_camera": "fewer than 10 cap points face the camera within "
+                                    "max_view_angle_deg",
+    "fit_failed": "the sphere fit raised (degenerate points) or its linearisation is "
+                  "singular",
+    "fit_rms_too_large": "the fit's RMS residual is 10 % of the diameter or more: not a cap "
+                         "of the nominal ball",
+}
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,8 +53,13 @@ class BGAMeasurement:
     Grid-wide:
 
     substrate : PlaneFit.
-    found : (rows, cols) bool.   missing : ((i, j), ...) populated positions not found.
-    unexpected : ((i, j), ...) balls found where the nominal grid has none.
+    found : (rows, cols) bool, positions with a measured ball.
+    not_measured : (((i, j), reason), ...), positions where a ball is seen (a region
+        stands above the substrate there) but could not be measured; ``reason`` is a key
+        of :data:`NOT_MEASURED_REASONS`. Such a ball is neither ``found`` nor ``missing``.
+    missing : ((i, j), ...) populated positions where no ball is seen at all.
+    unexpected : ((i, j), ...) balls measured where the nominal grid has none (a ball
+        seen there but not measured is listed in ``not_measured`` only).
     pitch_x : (rows, cols - 1) mm, in-plane distance between neighbouring ball centres
         along the columns (NaN where one is missing); pitch_y : (rows - 1, cols).
     pitch_error_max : float, mm, largest |pitch - nominal|.
@@ -71,11 +93,15 @@ class BGAMeasurement:
     nominal: BGANominal
     psf_variance: float = np.nan
     sigma_psf_variance: float = np.nan
+    not_measured: tuple = ()
 
     def __post_init__(self):
-        _readonly(self.index, self.centre, self.sigma_centre, self.refined, self.apex,
-                  self.height, self.sigma_height, self.diameter, self.position, self.rms,
-                  self.n_points, self.found, self.pitch_x, self.pitch_y)
+        for key, reason in self.not_measured:
+            if reason not in NOT_MEASURED_REASONS:
+                raise ValueError(f"not_measured {key}: unknown reason {reason!r}")
+        _freeze(self, "index", "centre", "sigma_centre", "refined", "apex", "height",
+                  "sigma_height", "diameter", "position", "rms", "n_points", "found",
+                  "pitch_x", "pitch_y")
 
     @property
     def n_balls(self) -> int:
