@@ -509,7 +509,17 @@ def write_bga_csv(path, m, *, force: bool = False) -> Path:
 def write_bga_png(path, m, *, title: str | None = None, force: bool = False) -> Path:
     """A map of the balls on the grid, coloured by apex height (mm); balls seen but not
     measured are orange hollow squares, missing balls red crosses, the seating-plane
-    contacts are circled."""
+    contacts are circled (drawn by ``_bga_map_figure``)."""
+    fig = _bga_map_figure(m, title=title)
+    path = Path(path)
+    with atomic_file(path, force=force) as tmp:
+        fig.savefig(tmp, format="png")
+    return path
+
+
+def _bga_map_figure(m, *, title: str | None = None):
+    """The matplotlib figure of :func:`write_bga_png` (one axes, a legend entry per
+    marker kind shown)."""
     rows, cols = m.nominal.rows, m.nominal.cols
     width_in = 7.5
     plot_in = 5.6  # about the axes' width
@@ -548,10 +558,7 @@ def write_bga_png(path, m, *, title: str | None = None, force: bool = False) -> 
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2,
                   fontsize="small", frameon=False, markerscale=0.5)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_file(path, force=force) as tmp:
-        fig.savefig(tmp, format="png")
-    return path
+    return fig
 
 
 # --------------------------------------------------------------------------------------

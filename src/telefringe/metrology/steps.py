@@ -64,26 +64,37 @@ def _level_peaks(h: np.ndarray, *, min_step: float, min_points: int, bin_mm: flo
     return sorted(peaks)
 
 
+def _parallel_planes_normal_equations(pts_list, n: np.ndarray):
+    """Gauss-Newton normal equations of parallel planes about the common normal ``n``.
+
+    Parameters: the normal tilted to n + t0 T0 + t1 T1 (T = tangent basis of n) and the
+    offsets d_k; residual of point p of level k: n . p + t . (T p) - d_k (linear in
+    (t, d), the first order of the tilted normal). Returns (M (2 + K, 2 + K) = J^T J,
+    b (2 + K,) = -J^T r0 with r0 = n . p (the residuals at t = 0, d = 0), T (2, 3)).
+    """
+    T = _tangent_basis(n)
+    K = len(pts_list)
+    M = np.zeros((2 + K, 2 + K))
+    b = np.zeros(2 + K)
+    for k, p in enumerate(pts_list):
+        q = p @ T.T  # (m, 2)
+        r = p @ n
+        M[:2, :2] += q.T @ q
+        sq = q.sum(axis=0)
+        M[:2, 2 + k] -= sq
+        M[2 + k, :2] -= sq
+        M[2 + k, 2 + k] += p.shape[0]
+        b[:2] -= q.T @ r
+        b[2 + k] += r.sum()
+    return M, b, T
+
+
 def _joint_parallel_planes(pts_list, n0: np.ndarray):
     """Common normal and offsets of parallel planes, Gauss-Newton on (tilts, offsets)."""
     n = n0.copy()
     K = len(pts_list)
     for _ in range(5):
-        T = _tangent_basis(n)
-        Ms = np.zeros((2 + K, 2 + K))
-        bs = np.zeros(2 + K)
-        for k, p in enumerate(pts_list):
-            q = p @ T.T  # (m, 2)
-            r = p @ n  # residual model: n.p + t.q - d_k = 0
-            # normal equations, accumulated
-            Mqq = q.T @ q
-            Ms[:2, :2] += Mqq
-            sq = q.sum(axis=0)
-            Ms[:2, 2 + k] -= sq
-            Ms[2 + k, :2] -= sq
-            Ms[2 + k, 2 + k] += p.shape[0]
-            bs[:2] -= q.T @ r
-            bs[2 + k] += r.sum()
+        Ms, bs, T = _parallel_planes_normal_equations(pts_list, n)
         try:
             x = np.linalg.solve(Ms, bs)
         except np.linalg.LinAlgError:
@@ -97,19 +108,11 @@ def _joint_parallel_planes(pts_list, n0: np.ndarray):
         if moved < 1e-13:
             break
     # final offsets, residuals and covariance at the solution
-    T = _tangent_basis(n)
     offsets = np.array([float(np.mean(p @ n)) for p in pts_list])
     res = [p @ n - d for p, d in zip(pts_list, offsets, strict=True)]
     N = sum(p.shape[0] for p in pts_list)
     s2 = sum(float(np.sum(r * r)) for r in res) / max(N - 2 - K, 1)
-    M = np.zeros((2 + K, 2 + K))
-    for k, p in enumerate(pts_list):
-        q = p @ T.T
-        M[:2, :2] += q.T @ q
-        sq = q.sum(axis=0)
-        M[:2, 2 + k] -= sq
-        M[2 + k, :2] -= sq
-        M[2 + k, 2 + k] += p.shape[0]
+    M, _, _ = _parallel_planes_normal_equations(pts_list, n)
     cov = s2 * np.linalg.inv(M)
     return n, offsets, res, cov
 

@@ -272,6 +272,20 @@ def _centres_and_apexes(cloud, seg, image, cands, caps, cov_theta, cap_model):
                 free=np.array([c.radius_free for c in caps], dtype=bool))
 
 
+def _unseen_positions(cloud, seg, T, pitch, theta, origin_local, rows, cols, D):
+    """Grid positions with valid points on fewer than a quarter of a ball's footprint
+    within D / 2 of their nominal place (on the substrate plane)."""
+    pts = cloud.xyz[cloud.mask] @ T.T
+    f = _grid_local(pts, theta, origin_local) / pitch
+    k = np.round(f).astype(np.int64)
+    near = np.all((k >= 0) & (k < (cols, rows)), axis=1) & (
+        np.hypot(*(f - k).T) * pitch < D / 2)
+    counts = np.zeros((rows, cols), dtype=np.int64)
+    np.add.at(counts, (k[near, 1], k[near, 0]), 1)
+    need = max(0.25 * seg.footprint_px, 1.0)
+    return [(int(i), int(j)) for i, j in np.argwhere(counts < need)], counts
+
+
 def _on_the_grid(cloud, seg, nominal: BGANominal, b: dict, failed, s2) -> BGAMeasurement:
     """Stage: grid registration, not-measured and missing positions, pitch and
     coplanarity."""
@@ -304,6 +318,13 @@ def _on_the_grid(cloud, seg, nominal: BGANominal, b: dict, failed, s2) -> BGAMea
         for ij in _claim_positions(pts @ T.T, pitch, theta, origin_local, rows, cols):
             if not found[ij] and ij not in not_measured:
                 not_measured[ij] = reason
+    # a populated position with neither a ball nor a view of the substrate around it
+    # cannot be called missing (outside the field of view, or invalid there)
+    unseen, _ = _unseen_positions(cloud, seg, T, pitch, theta, origin_local, rows, cols,
+                                  float(nominal.ball_diameter_mm))
+    for ij in unseen:
+        if populated[ij] and not found[ij] and ij not in not_measured:
+            not_measured[ij] = "not_in_view"
     not_measured = tuple(sorted(not_measured.items()))
     seen = found.copy()
     for ij, _ in not_measured:

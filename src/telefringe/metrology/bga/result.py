@@ -24,6 +24,9 @@ NOT_MEASURED_REASONS = {
                                     "max_view_angle_deg",
     "fit_failed": "the sphere fit raised (degenerate points) or its linearisation is "
                   "singular",
+    "not_in_view": "no ball region, and valid points on less than a quarter of a ball's "
+                   "footprint around the nominal position (outside the field of view, or "
+                   "invalid there): it cannot be told missing",
     "fit_rms_too_large": "the fit's RMS residual is 10 % of the diameter or more: not a cap "
                          "of the nominal ball",
 }
