@@ -117,6 +117,24 @@ def test_failed_point_spread_solve_warns_and_gives_nan(monkeypatch):
     assert np.isnan(m.psf_variance) and np.isnan(m.sigma_psf_variance)
     # the caps are still fitted (without the correction), every present ball measured
     assert np.array_equal(m.found, present) and np.all(np.isfinite(m.height))
+    assert m.psf_balls == 10 and m.psf_converged is False
+
+
+def test_point_spread_solve_reports_its_convergence(monkeypatch):
+    cloud, present, offs, apex = bga_cloud(psf_s2=4e-4, seed=4)
+    m = measure_bga(cloud, NOM)
+    assert m.psf_converged is True and m.psf_balls == 10  # every 4th of the 40 balls
+    real = psf._fit_caps_smoothed
+
+    def one_round(*args, **kw):
+        return real(*args, **{**kw, "rounds": 1})
+
+    monkeypatch.setattr("telefringe.metrology.bga.measure._fit_caps_smoothed", one_round)
+    with pytest.warns(psf.PSFConvergenceWarning, match="did not converge in 1 round"):
+        m1 = measure_bga(cloud, NOM)
+    assert m1.psf_converged is False and np.isfinite(m1.psf_variance)
+    js = bga_summary(m1)
+    assert js["psf_converged"] is False and js["psf_balls"] == 10
 
 
 def test_options_are_explicit_and_validated():

@@ -693,6 +693,8 @@ def bga_summary(m) -> dict:
         "pitch_std_mm": _f(np.std(fin, ddof=1)) if fin.size > 1 else None,
         "pitch_error_max_mm": _f(m.pitch_error_max),
         "grid_angle_deg": _f(m.grid_angle_deg),
+        "psf_variance_mm2": _f(m.psf_variance), "sigma_psf_variance_mm2": _f(m.sigma_psf_variance),
+        "psf_balls": int(m.psf_balls), "psf_converged": m.psf_converged,
         "substrate": plane_summary(m.substrate),
         "balls": {"index": to_jsonable(m.index), "height_mm": to_jsonable(m.height),
                   "sigma_height_mm": to_jsonable(m.sigma_height),

@@ -12,8 +12,9 @@
 from telefringe.metrology.bga.coplanarity import Coplanarity, seating_plane_coplanarity
 from telefringe.metrology.bga.measure import BGAOptions, measure_bga
 from telefringe.metrology.bga.nominal import BGANominal
-from telefringe.metrology.bga.psf import PSFSolveWarning
+from telefringe.metrology.bga.psf import PSFConvergenceWarning, PSFSolveWarning
 from telefringe.metrology.bga.result import NOT_MEASURED_REASONS, BGAMeasurement
 
 __all__ = ["BGANominal", "BGAOptions", "BGAMeasurement", "Coplanarity", "NOT_MEASURED_REASONS",
+           "PSFConvergenceWarning",
            "PSFSolveWarning", "measure_bga", "seating_plane_coplanarity"]

@@ -193,7 +193,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
     cands = cap_candidates(cloud, seg, D, image=image_arr, gradient=gradient,
                            min_fraction=opt.min_fraction, edge_px=edge_px,
                            cap_min_height=opt.cap_min_height, highlight_px=highlight_px)
-    caps, cov_theta, s2 = _fit_caps(cands, cloud, D, opt, free_gradient=not grad_known)
+    caps, cov_theta, s2, psf_run = _fit_caps(cands, cloud, D, opt,
+                                             free_gradient=not grad_known)
     ok = [k for k, c in enumerate(caps) if c.fit is not None]
     if not ok:
         why = sorted({c.reason for c in caps})
@@ -201,7 +202,7 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
     balls = _centres_and_apexes(cloud, seg, image_arr, [cands[k] for k in ok],
                                 [caps[k] for k in ok], cov_theta, opt.cap_model)
     failed = [(cands[k], caps[k].reason) for k in range(len(cands)) if caps[k].fit is None]
-    return _on_the_grid(cloud, seg, nominal, balls, failed, s2)
+    return _on_the_grid(cloud, seg, nominal, balls, failed, s2, psf_run)
 
 
 def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradient: bool):
@@ -211,6 +212,7 @@ def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradi
     caps_in = [(cands[k].points, cands[k].sigma, cands[k].gradient) for k in idx]
     s2 = (np.nan, np.nan)
     cov_theta = None
+    psf_run = (0, None)
     if opt.cap_model == "psf":
         angle = opt.view_angle_deg
         res = _fit_caps_smoothed(caps_in, view, D / 2,
@@ -220,6 +222,7 @@ def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradi
                 else CapFit(None, "fit_rms_too_large") for c in res.caps]
         s2 = (float(res.theta[0]), float(np.sqrt(res.cov_theta[0, 0])))
         cov_theta = res.cov_theta
+        psf_run = (res.n_balls, res.converged)
     else:
         fits = fit_caps_alone(caps_in, view, D, weighted=bool(opt.weighted),
                               max_view_angle_deg=opt.view_angle_deg,
@@ -227,7 +230,7 @@ def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradi
     out = [CapFit(None, c.reason) for c in cands]
     for k, f in zip(idx, fits, strict=True):
         out[k] = f
-    return out, cov_theta, s2
+    return out, cov_theta, s2, psf_run
 
 
 def _centres_and_apexes(cloud, seg, image, cands, caps, cov_theta, cap_model):
@@ -286,7 +289,8 @@ def _unseen_positions(cloud, seg, T, pitch, theta, origin_local, rows, cols, D):
     return [(int(i), int(j)) for i, j in np.argwhere(counts < need)], counts
 
 
-def _on_the_grid(cloud, seg, nominal: BGANominal, b: dict, failed, s2) -> BGAMeasurement:
+def _on_the_grid(cloud, seg, nominal: BGANominal, b: dict, failed, s2,
+                 psf_run) -> BGAMeasurement:
     """Stage: grid registration, not-measured and missing positions, pitch and
     coplanarity."""
     substrate = seg.substrate
@@ -361,4 +365,4 @@ def _on_the_grid(cloud, seg, nominal: BGANominal, b: dict, failed, s2) -> BGAMea
         pitch_error_max=float(np.max(np.abs(errs))) if errs.size else np.nan,
         coplanarity=cop, grid_angle_deg=float(np.degrees(theta)), nominal=nominal,
         psf_variance=float(s2[0]), sigma_psf_variance=float(s2[1]),
-        not_measured=not_measured)
+        not_measured=not_measured, psf_balls=int(psf_run[0]), psf_converged=psf_run[1])

@@ -19,6 +19,12 @@ class PSFSolveWarning(RuntimeWarning):
     caps were fitted without the point-spread correction and ``psf_variance`` is NaN."""
 
 
+class PSFConvergenceWarning(RuntimeWarning):
+    """The point-spread parameters were still moving by more than 5 % of their sigma
+    after the last Gauss-Newton round: the estimate (``psf_variance``) is the last
+    iterate (``BGAMeasurement.psf_converged`` is False)."""
+
+
 class PSFCapFits(NamedTuple):
     """Result of :func:`_fit_caps_smoothed`.
 
@@ -231,6 +237,9 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
         cov = np.full((npar, npar), np.nan)
     else:
         theta_fit = theta
+        if not converged:
+            warnings.warn(f"the point-spread variance did not converge in {n_rounds} rounds",
+                          PSFConvergenceWarning, stacklevel=3)
     out = []
     for it, why in zip(sel, reasons, strict=True):
         if it is None:

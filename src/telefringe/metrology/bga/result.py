@@ -70,7 +70,11 @@ class BGAMeasurement:
     grid_angle_deg : float, the grid's rotation on the substrate.
     psf_variance, sigma_psf_variance : float, mm^2, the camera's point-spread variance
         (per axis, on the object) estimated from the caps and its standard uncertainty,
-        when the caps were fitted with it (``psf_model``); else NaN.
+        when the caps were fitted with it (cap model "psf"); else NaN (also when the
+        solve failed: see :class:`~telefringe.metrology.bga.psf.PSFSolveWarning`).
+    psf_balls : int, balls the point-spread parameters were estimated from (0 without
+        the model).   psf_converged : bool, the Gauss-Newton rounds of that estimate
+        converged (step below 5 % of its sigma); None without the model.
     """
 
     index: np.ndarray
@@ -97,6 +101,8 @@ class BGAMeasurement:
     psf_variance: float = np.nan
     sigma_psf_variance: float = np.nan
     not_measured: tuple = ()
+    psf_balls: int = 0
+    psf_converged: bool | None = None
 
     def __post_init__(self):
         for key, reason in self.not_measured:
