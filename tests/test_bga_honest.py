@@ -154,6 +154,8 @@ def test_options_are_explicit_and_validated():
         measure_bga(cloud, NOM, projector=object(), options=BGAOptions(cap_model="free"))
     with pytest.raises(MetrologyError, match="projector"):
         measure_bga(cloud, NOM, projector=object())  # no image: the term is not used
+    with pytest.raises(MetrologyError, match="highlight_px"):
+        measure_bga(cloud, NOM, options=BGAOptions(highlight_px=2.0))
 
 
 def test_callers_arrays_are_neither_changed_nor_made_read_only():

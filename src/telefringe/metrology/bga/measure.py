@@ -165,12 +165,15 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
     ------
     MetrologyError
         No ball, no ball that could be fitted, a grid that does not fit the nominal one,
-        an image of the wrong shape, or a ``projector`` the options do not use.
+        an image of the wrong shape, or a ``projector`` or ``highlight_px`` that would
+        not be used (no image, or a cap model without the point-spread term).
 
     Warns
     -----
     PSFSolveWarning
         The point-spread variance could not be estimated (``psf_variance`` NaN).
+    PSFConvergenceWarning
+        Its Gauss-Newton rounds ended before it converged (``psf_converged`` False).
     """
     opt = BGAOptions() if options is None else options
     if cloud.count < 10:
@@ -179,6 +182,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
         raise MetrologyError(f"image has shape {np.shape(image)}, the cloud {cloud.shape}")
     if projector is not None and (opt.cap_model != "psf" or image is None):
         raise MetrologyError("a projector is used only by cap_model 'psf' with an image")
+    if opt.highlight_px is not None and image is None:
+        raise MetrologyError("highlight_px is used only with an image")
     image_arr = None if image is None else np.array(image, dtype=np.float64)
     D = float(nominal.ball_diameter_mm)
     seg = segment(cloud, D, min_height=opt.min_height, substrate_margin=opt.substrate_margin,

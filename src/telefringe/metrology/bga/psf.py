@@ -155,9 +155,10 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
     Gauss-Newton on all balls' residuals at once (Schur complement of the per-ball
     centres, :func:`_schur_normal_equations`), on every ``sub_every``-th ball.
 
-    When the common parameters cannot be estimated (no ball usable, or a singular
-    system), a :class:`PSFSolveWarning` is issued, theta and its covariance are NaN and
-    the caps are fitted with theta = 0 (no point-spread correction).
+    When the common parameters cannot be estimated (a singular system), a
+    :class:`PSFSolveWarning` is issued, theta and its covariance are NaN and the caps are
+    fitted with theta = 0 (no point-spread correction). Without any usable cap nothing
+    is solved (theta NaN, no warning: there is no ball to measure).
 
     Returns
     -------
@@ -203,10 +204,13 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
     theta = np.zeros(npar)
     cov = np.full((npar, npar), np.nan)
     sub = [k for k, it in enumerate(sel) if it is not None][::max(int(sub_every), 1)]
+    if not sub:  # no cap to fit: each keeps its reason (the caller has no ball)
+        return PSFCapFits([CapFit(None, why) for why in reasons], np.full(npar, np.nan),
+                          np.full((npar, npar), np.nan), 0, False, 0)
     converged = False
-    failed = not sub
+    failed = False
     n_rounds = 0
-    for _ in range(rounds if sub else 0):
+    for _ in range(rounds):
         n_rounds += 1
         terms = []
         for k in sub:
