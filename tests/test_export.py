@@ -16,7 +16,7 @@ from telefringe.io.ply import write_ply
 from telefringe.io.points_npz import load_points, read_points, write_points
 from telefringe.io.reconstruction_folder import write_reconstruction
 from telefringe.io.tiff import read_height_tiff, write_height_tiff
-from telefringe.metrology.core import BGANominal, fit_plane, measure_bga
+from telefringe.metrology import BGANominal, fit_plane, measure_bga
 from telefringe.reconstruction.reconstruct import PointCloud, height_map
 
 PNG_SIG = b"\x89PNG\r\n\x1a\n"

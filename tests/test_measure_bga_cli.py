@@ -29,7 +29,15 @@ def bga_out(tmp_path_factory):
                                   exposures=HDR_EXPOSURES, seed=4)
     write_scan(tmp / "scan", scan)
     reconstruct_to_folder(tmp / "scan", vr.rig, tmp / "out")
-    return tmp
+    # the balls wholly inside the window, and those with some part in it (camera pixels)
+    bga = scenes.make_scene("bga", seed=4)
+    apex = bga.apexes_world()
+    u, v = (np.asarray(a) for a in vr.rig.camera.project(apex))
+    u_edge = np.asarray(vr.rig.camera.project(apex + [bga.ball_diameter / 2, 0, 0])[0])
+    r = float(np.median(np.abs(u_edge - u)))
+    inside = [(u - r >= 0) & (u + r <= 159) & (v - r >= 0) & (v + r <= 159),
+              (u + r >= 0) & (u - r <= 159) & (v + r >= 0) & (v - r <= 159)]
+    return tmp, apex[bga.present() & inside[0]], int(np.count_nonzero(bga.present() & inside[1]))
 
 
 def _rows(path):
@@ -38,11 +46,20 @@ def _rows(path):
 
 
 def test_measure_bga_default_and_free_radius(bga_out, capsys):
+    bga_out, whole, n_partly = bga_out
     out = bga_out / "out"
     js = bga_out / "bga.json"
     assert main(["measure", "bga", str(out), "--json", str(js)]) == 0
     res = json.loads(js.read_text())
-    assert res["balls_found"] >= 16 and res["diameters_measured"] == 0
+    # every ball wholly in view is measured, at its true place (x, y within 10 um; the
+    # highlight-refined centres scatter by ~1 um); the balls cut by the window's edge
+    # are either measured or seen but not measured, none is called missing
+    centres = np.asarray(res["balls"]["centre_mm"])
+    for a in whole:
+        assert np.min(np.hypot(*(centres[:, :2] - a[:2]).T)) < 0.01
+    seen = res["balls_found"] + sum(d["reason"] != "not_in_view" for d in res["not_measured"])
+    assert len(whole) <= res["balls_found"] and seen <= n_partly
+    assert res["missing"] == [] and res["diameters_measured"] == 0
     printed = capsys.readouterr().out
     assert "apex height" in printed and "diameter:" not in printed
     # --free-radius reports diameters (balls of 0.45 mm nominal)
@@ -52,5 +69,6 @@ def test_measure_bga_default_and_free_radius(bga_out, capsys):
     assert "diameter:" in printed
     diam = [float(r["diameter_mm"]) for r in _rows(bga_out / "free.csv")
             if r.get("diameter_mm") not in (None, "", "nan")]
-    # (the free fit is biased small by the blur on the caps' flanks: a few % here)
-    assert diam and abs(float(np.median(diam)) - 0.45) < 0.05
+    # the free fit is biased small by the blur on the caps' flanks: median measured
+    # 0.4425 mm (-7.5 um); the bound is twice that
+    assert diam and abs(float(np.median(diam)) - 0.45) < 0.015

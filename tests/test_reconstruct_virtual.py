@@ -20,7 +20,7 @@ from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import TelecentricDevice
 from telefringe.fringes.decode import decode
 from telefringe.fringes.images import fringe_free_image
-from telefringe.metrology.core import (
+from telefringe.metrology import (
     BGANominal,
     measure_bga,
     measure_plate,

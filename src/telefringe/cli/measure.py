@@ -26,7 +26,7 @@ def _load(out: Path):
 
 
 def _metrology_errors():
-    from telefringe.metrology.core import MetrologyError
+    from telefringe.metrology import MetrologyError
 
     return MetrologyError
 
@@ -63,7 +63,7 @@ def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3
                          dark: bool = True):
     """Detect the circle grid in ``out``'s texture and measure the plate
     (PlateMeasurement). User problems raise InputError."""
-    from telefringe.metrology.core import measure_plate
+    from telefringe.metrology import measure_plate
     from telefringe.targets.circle_grid import detect_circle_grid
 
     out = Path(out)
@@ -124,7 +124,7 @@ def sphere_cmd(
     Example: telefringe measure sphere sphere_3d --json sphere.json
     """
     from telefringe.io.reports import sphere_summary
-    from telefringe.metrology.core import measure_sphere
+    from telefringe.metrology import measure_sphere
 
     _check_outputs([json_path], force)
     cloud, _ = _load(out)
@@ -146,14 +146,15 @@ def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,
     ``free_radius``: fit each cap's radius too (diameters reported, apex heights less
     accurate) instead of the nominal-radius fit through the point-spread model."""
     from telefringe.io.points_npz import load_points
-    from telefringe.metrology.core import BGANominal, measure_bga
+    from telefringe.metrology import BGANominal, BGAOptions, measure_bga
 
     out = Path(out)
     pf = load_points(out)
     try:
         nominal = BGANominal(rows=rows, cols=cols, pitch_mm=pitch, ball_diameter_mm=diameter)
         # the radiance image locates each ball by its specular highlight (better pitch)
-        return measure_bga(pf.cloud, nominal, image=pf.radiance, psf_model=not free_radius)
+        options = BGAOptions(cap_model="free" if free_radius else "psf")
+        return measure_bga(pf.cloud, nominal, image=pf.radiance, options=options)
     except _metrology_errors() as exc:
         _fail(out, exc)
 
@@ -194,8 +195,11 @@ def bga_cmd(
                            free_radius=free_radius)
     import numpy as np
 
-    info(f"balls found: {m.n_balls} of {int(m.nominal.populated().sum())}; missing: "
+    info(f"balls measured: {m.n_balls} of {int(m.nominal.populated().sum())}; missing: "
          f"{', '.join(f'({i},{j})' for i, j in m.missing) or 'none'}")
+    if m.not_measured:
+        info(f"seen but not measured: {len(m.not_measured)}: "
+             + ", ".join(f"({i},{j}) {why}" for (i, j), why in m.not_measured))
     info(f"apex height: mean {np.mean(m.height):.4f} mm, min {np.min(m.height):.4f}, max "
          f"{np.max(m.height):.4f} (median sigma {_um(np.median(m.sigma_height))})")
     if np.any(np.isfinite(m.diameter)):
@@ -221,7 +225,7 @@ def steps_cmd(
     Example: telefringe measure steps steps_3d --json steps.json
     """
     from telefringe.io.reports import steps_summary
-    from telefringe.metrology.core import measure_steps
+    from telefringe.metrology import measure_steps
 
     _check_outputs([json_path], force)
     cloud, _ = _load(out)

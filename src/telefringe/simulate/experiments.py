@@ -168,6 +168,7 @@ class BGAResult:
     coplanarity, coplanarity_truth : JEDEC seating-plane coplanarity.
     n_present, n_found : balls in the scene, balls found (at their true positions).
     missing_truth, missing_reported : grid positions (row, col).
+    not_measured_reported : ((row, col), reason) of balls seen but not measured.
     valid_fraction_balls : fraction of lit ball pixels with a valid 3-D point.
     """
 
@@ -184,6 +185,7 @@ class BGAResult:
     missing_reported: tuple[tuple[int, int], ...]
     valid_fraction_balls: float
     measurement: object = field(repr=False, default=None)
+    not_measured_reported: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -230,7 +232,7 @@ def run_calibration(vrig: VirtualRig, *, n_poses: int, seed: int = 0,
 
 def run_plate(vrig: VirtualRig, rig: Rig, position: float, *, seed: int = 0) -> PlateRow:
     """Scan the circle plate raised to Z = ``position`` mm and measure it (Table 3 row)."""
-    from telefringe.metrology.core import measure_plate
+    from telefringe.metrology import measure_plate
     from telefringe.reconstruction.reconstruct import reconstruct_scan
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import plate_at_z
@@ -281,8 +283,13 @@ def _five_pairs(meas, rows: int, cols: int) -> list[tuple[tuple[int, int], tuple
 
 def run_bga(vrig: VirtualRig, rig: Rig, *, seed: int = 0, hdr: bool = True) -> BGAResult:
     """Scan the default BGA (HDR unless ``hdr`` is False), measure it, compare with truth."""
-    from telefringe.metrology.core import BGANominal, measure_bga, seating_plane_coplanarity
-    from telefringe.metrology.core import Plane as _Plane
+    from telefringe.metrology import (
+        BGANominal,
+        BGAOptions,
+        measure_bga,
+        seating_plane_coplanarity,
+    )
+    from telefringe.metrology import Plane as _Plane
     from telefringe.reconstruction.reconstruct import reconstruct_scan
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import default_bga
@@ -301,7 +308,7 @@ def run_bga(vrig: VirtualRig, rig: Rig, *, seed: int = 0, hdr: bool = True) -> B
     # diameter), the camera's point spread modelled (its variance estimated from the
     # caps), points within 2.5 px of the highlight (whose light the point spread carries
     # into them, beyond first order) and tilted more than 60 deg dropped; see measure_bga
-    meas = measure_bga(rec.cloud, nominal, image=rec.radiance, seed=seed)
+    meas = measure_bga(rec.cloud, nominal, image=rec.radiance, options=BGAOptions(seed=seed))
 
     # the truth, indexed like the measurement
     true_centres = bga.centres_world()
@@ -342,7 +349,8 @@ def run_bga(vrig: VirtualRig, rig: Rig, *, seed: int = 0, hdr: bool = True) -> B
         n_present=int(present.sum()), n_found=int(meas.n_balls),
         missing_truth=tuple(tuple(int(x) for x in m) for m in bga.missing),
         missing_reported=tuple(tuple(int(x) for x in m) for m in meas.missing),
-        valid_fraction_balls=frac, measurement=meas)
+        valid_fraction_balls=frac, measurement=meas,
+        not_measured_reported=tuple(meas.not_measured))
 
 
 def run_paper(*, quick: bool = False, seed: int = 0, n_poses: int | None = None,

@@ -1,0 +1,227 @@
+"""Ball centres from their specular highlights (Gaussian spot fits), and the centre's
+depth along a highlight's camera line."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from telefringe.metrology._common import MetrologyError, _poly_design, _tangent_basis
+from telefringe.reconstruction.reconstruct import PointCloud
+
+
+def _gauss_spots(wins: np.ndarray, u0: float, v0: float, *, max_iter: int = 60):
+    """Least-squares fits of a pixel-integrated 2D Gaussian + background to many windows.
+
+    ``wins`` (n, n0, n1): each is fitted with a * ex(u) * ey(v) + b, ex the integral over
+    the pixel of a unit Gaussian of centre x and sigma sg (error functions), by
+    Levenberg-Marquardt run on all windows at once (analytic Jacobian; bounds a >= 0,
+    -1 <= x <= n1, -1 <= y <= n0, 0.2 <= sg <= 0.4 min(n0, n1) by projection). Returns
+    a list of (x, y, cov_xy (2, 2), sg) in window pixel coordinates, or None where the
+    fit failed or the spot is not clear (peak below 10 residual sigma, or within a pixel
+    of the window's edge).
+    """
+    from scipy.special import erf
+
+    W = np.asarray(wins, dtype=np.float64)
+    n, n0, n1 = W.shape
+    uu = np.arange(n1, dtype=np.float64)
+    vv = np.arange(n0, dtype=np.float64)
+    r2 = np.sqrt(2.0)
+    c_pdf = 1.0 / np.sqrt(2.0 * np.pi)
+    lo = np.array([0.0, -1.0, -1.0, 0.2, -np.inf])
+    hi = np.array([np.inf, n1, n0, 0.4 * min(n0, n1), np.inf])
+
+    def axis_terms(c, sg, grid):
+        # (n, m): pixel integral of the unit Gaussian and its derivatives in c and sg
+        zp = (grid[None, :] + 0.5 - c[:, None]) / (r2 * sg[:, None])
+        zm = (grid[None, :] - 0.5 - c[:, None]) / (r2 * sg[:, None])
+        ep, em = np.exp(-zp * zp), np.exp(-zm * zm)
+        e = 0.5 * (erf(zp) - erf(zm))
+        de_dc = -c_pdf / sg[:, None] * (ep - em)
+        de_ds = -(r2 * c_pdf) / sg[:, None] * (zp * ep - zm * em)
+        return e, de_dc, de_ds
+
+    def model_jac(P):
+        a, x, y, sg, b = P.T
+        ex, dex, dsx = axis_terms(x, sg, uu)
+        ey, dey, dsy = axis_terms(y, sg, vv)
+        g = ey[:, :, None] * ex[:, None, :]  # (n, n0, n1)
+        m = a[:, None, None] * g + b[:, None, None]
+        J = np.stack([g, a[:, None, None] * ey[:, :, None] * dex[:, None, :],
+                      a[:, None, None] * dey[:, :, None] * ex[:, None, :],
+                      a[:, None, None] * (ey[:, :, None] * dsx[:, None, :]
+                                          + dsy[:, :, None] * ex[:, None, :]),
+                      np.ones_like(g)], axis=-1)
+        return m.reshape(n, -1), J.reshape(n, -1, 5)
+
+    b0 = W.reshape(n, -1).min(axis=1)
+    P = np.column_stack([(W.reshape(n, -1).max(axis=1) - b0) * 2 * np.pi * 0.7**2,
+                         np.full(n, float(u0)), np.full(n, float(v0)), np.full(n, 0.7), b0])
+    Y = W.reshape(n, -1)
+    m, J = model_jac(P)
+    r = m - Y
+    cost = np.sum(r * r, axis=1)
+    lam = np.full(n, 1e-3)
+    done = np.zeros(n, dtype=bool)
+    eye = np.eye(5)
+    for _ in range(max_iter):
+        H = np.einsum("nki,nkj->nij", J, J)
+        g = np.einsum("nki,nk->ni", J, r)
+        A = H + lam[:, None, None] * (np.einsum("nii->ni", H)[:, :, None] * eye)
+        try:
+            step = -np.linalg.solve(A, g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            break
+        Pn = np.clip(P + step, lo, hi)
+        mn, Jn = model_jac(Pn)
+        rn = mn - Y
+        cn = np.sum(rn * rn, axis=1)
+        better = (cn < cost) & ~done
+        small = np.max(np.abs(Pn - P) / (np.abs(P) + 1e-3), axis=1) < 1e-10
+        P[better], r[better], J[better] = Pn[better], rn[better], Jn[better]
+        done |= better & ((cost - cn) <= 1e-12 * cost) | small
+        cost = np.where(better, cn, cost)
+        lam = np.where(better, np.maximum(lam / 10, 1e-12), np.minimum(lam * 10, 1e12))
+        done |= lam >= 1e12
+        if done.all():
+            break
+    out = []
+    dof = max(n0 * n1 - 5, 1)
+    for k in range(n):
+        a, x, y, sg, b = P[k]
+        s2r = float(cost[k]) / dof
+        try:
+            cov = s2r * np.linalg.inv(J[k].T @ J[k])
+        except np.linalg.LinAlgError:
+            out.append(None)
+            continue
+        peak = a / (2 * np.pi * sg * sg)
+        if not (np.all(np.isfinite(P[k])) and peak > 10.0 * np.sqrt(s2r)
+                and 1.0 <= x <= n1 - 2 and 1.0 <= y <= n0 - 2):
+            out.append(None)
+            continue
+        out.append((x, y, cov[1:3, 1:3], sg))
+    return out
+
+
+def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre, sig_c,
+                          nrm, radius, sig_surface):
+    """Ball centres on the substrate plane from their specular highlights.
+
+    Under telecentric camera and projector every ball is seen and lit the same way, so
+    its highlight sits at the same offset from its centre on every ball: the highlight
+    (a small bright spot, located to ~0.01 px by a Gaussian fit) gives each ball's
+    position relative to the others far better than the noisy cap fit; the common offset
+    is the median of (highlight - cap centre) over the balls.
+
+    The highlight's 3-D point is where its camera line meets the ball's fitted sphere.
+    The line is exact (the points of neighbouring pixels lie on their own lines whatever
+    their depth error: only their components across the viewing direction are used);
+    the depth along it comes from the sphere fit of the whole cap, not from the few
+    points at the highlight (whose depth noise, ~ sigma_line / 5, would move the centre
+    on the substrate by the viewing direction's tilt times that).
+
+    ``radius`` (n,) are the fitted radii, ``sig_surface`` (n,) the standard uncertainty
+    of the fitted surface along the viewing direction near the top (mm).
+
+    Returns (centre, sigma_centre, refined, lines (n, 3): a point of each highlight's
+    camera line or NaN, median offset (3,) of highlight from centre or None).
+    """
+    if image.shape != cloud.shape:
+        raise MetrologyError(f"image has shape {image.shape}, the cloud {cloud.shape}")
+    rows, cols = cloud.shape
+    d = np.asarray(cloud.direction, dtype=np.float64)
+    h = 3
+    hl = np.full(centre.shape, np.nan)
+    hl_cov = np.full((centre.shape[0], 3, 3), np.nan)
+    lines = np.full(centre.shape, np.nan)  # a point of each highlight's camera line
+    found = []
+    for k, (sl, reg) in enumerate(regions):
+        sub = np.where(reg, image[sl], -np.inf)
+        if not np.any(np.isfinite(sub)):
+            continue
+        pi, pj = np.unravel_index(int(np.nanargmax(np.nan_to_num(sub, nan=-np.inf))),
+                                  sub.shape)
+        pv, pu = sl[0].start + pi, sl[1].start + pj
+        if not (h <= pv < rows - h and h <= pu < cols - h):
+            continue
+        win = image[pv - h:pv + h + 1, pu - h:pu + h + 1]
+        if not np.all(np.isfinite(win)):
+            continue
+        found.append((k, pv, pu, win))
+    spots = (_gauss_spots(np.stack([f[3] for f in found]), float(h), float(h))
+             if found else [])
+    for (k, pv, pu, _), g in zip(found, spots, strict=True):
+        if g is None:
+            continue
+        x, y, cov_uv, _ = g
+        du = np.arange(-h, h + 1, dtype=np.float64) - (x - h)
+        dv = np.arange(-h, h + 1, dtype=np.float64) - (y - h)
+        DV, DU = np.meshgrid(dv, du, indexing="ij")
+        P = cloud.xyz[pv - h:pv + h + 1, pu - h:pu + h + 1].reshape(-1, 3)
+        ok = np.all(np.isfinite(P), axis=1)
+        if np.count_nonzero(ok) < 12:
+            continue
+        # the camera lines of the window's pixels: their points' components across the
+        # viewing direction, a smooth (affine up to distortion) function of the pixel
+        Q = P[ok] - np.outer(P[ok] @ d, d)
+        A = _poly_design(DU.ravel()[ok], DV.ravel()[ok], 2)
+        coef, *_ = np.linalg.lstsq(A, Q, rcond=None)
+        J = coef[1:3].T  # (3, 2): d q / d (u, v)
+        q = coef[0]
+        # front intersection of the line q + t d with the sphere
+        w = q - centre[k]
+        b = float(w @ d)
+        disc = b * b - (float(w @ w) - radius[k] ** 2)
+        if not disc >= 0:
+            continue
+        t = -b - np.sqrt(disc)
+        lines[k] = q
+        hl[k] = q + t * d
+        hl_cov[k] = J @ cov_uv @ J.T + sig_surface[k] ** 2 * np.outer(d, d)
+    good = np.all(np.isfinite(hl), axis=1)
+    if np.count_nonzero(good) < 3:
+        return centre, sig_c, np.zeros(centre.shape[0], dtype=bool), lines, None
+    off = hl[good] - centre[good]
+    med = np.median(off, axis=0)
+    # the median's uncertainty (common to all balls): 1.25 std / sqrt(n)
+    s_med = 1.2533 * off.std(axis=0, ddof=1) / np.sqrt(off.shape[0])
+    new_c = centre.copy()
+    new_s = sig_c.copy()
+    delta = hl[good] - med - centre[good]
+    delta -= (delta @ nrm)[:, None] * nrm  # move on the substrate plane only
+    new_c[good] = centre[good] + delta
+    T = _tangent_basis(nrm)
+    # in-plane uncertainty from the highlight fit and the median offset; along the
+    # normal the cap fit's
+    var_t = np.einsum("ij,kjl,il->ki", T, hl_cov[good], T)  # (m, 2), tangent basis
+    var_t = var_t + (T**2) @ (s_med**2)
+    var_n = (sig_c[good] ** 2) @ (nrm**2)  # (m,)
+    new_s[good] = np.sqrt(var_t @ (T**2) + var_n[:, None] * nrm**2)
+    return new_c, new_s, good, lines, med
+
+
+def _fit_along_line(q: np.ndarray, w: np.ndarray, a: np.ndarray, d: np.ndarray, r: float,
+                    c0: np.ndarray):
+    """Sphere of radius r with its centre on the line a + t d, fitted to points q (m, 3)
+    with weights w: Gauss-Newton on t. Returns (centre (3,), sigma_t (mm)) or None."""
+    t = float((c0 - a) @ d)
+    for _ in range(20):
+        v = q - (a + t * d)
+        dist = np.linalg.norm(v, axis=1)
+        f = dist - r
+        j = -(v @ d) / dist  # d f / d t
+        den = float(j @ (w * j))
+        if not den > 0:
+            return None
+        step = -float(j @ (w * f)) / den
+        t += step
+        if abs(step) < 1e-9:
+            break
+    v = q - (a + t * d)
+    f = np.linalg.norm(v, axis=1) - r
+    dof = max(q.shape[0] - 1, 1)
+    s_t = float(np.sqrt(float(f @ (w * f)) / dof / den))
+    if not np.isfinite(t):
+        return None
+    return a + t * d, s_t

@@ -1,0 +1,296 @@
+"""Planes: fits (total least squares, robust), distances between planes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from telefringe.metrology._common import _MAD, _TUKEY_C, MetrologyError, _freeze, _tangent_basis
+from telefringe.reconstruction.reconstruct import PointCloud
+
+
+@dataclass(frozen=True, eq=False)
+class Plane:
+    """The plane ``normal . x = offset`` (normal (3,) unit, mm)."""
+
+    normal: np.ndarray
+    offset: float
+
+    def __post_init__(self):
+        n = np.array(self.normal, dtype=np.float64).reshape(3)
+        nn = float(np.linalg.norm(n))
+        if not np.isfinite(nn) or nn == 0 or not np.isfinite(self.offset):
+            raise MetrologyError("a plane needs a finite non-zero normal and a finite offset")
+        off = float(self.offset) / nn
+        n = n / nn
+        if n[2] < 0:
+            n, off = -n, -off
+        n.setflags(write=False)
+        object.__setattr__(self, "normal", n)
+        object.__setattr__(self, "offset", off)
+
+    @classmethod
+    def horizontal(cls, z: float = 0.0) -> Plane:
+        """The plane Z = z (the reference plane of a calibration's world frame is Z = 0)."""
+        return cls(np.array([0.0, 0.0, 1.0]), float(z))
+
+    def distance(self, points) -> np.ndarray:
+        """Signed distances (...,) mm of points (..., 3) from the plane (+ toward camera)."""
+        return np.asarray(points, dtype=np.float64) @ self.normal - self.offset
+
+    def z_at(self, x, y) -> np.ndarray:
+        """Z (mm) of the plane above (x, y) (broadcast)."""
+        n = self.normal
+        return (self.offset - n[0] * np.asarray(x) - n[1] * np.asarray(y)) / n[2]
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneFit(Plane):
+    """A plane fitted to points.
+
+    Attributes
+    ----------
+    normal, offset : as :class:`Plane`.
+    centroid : (3,) mm, weighted centroid of the inliers (a point of the plane).
+    rms : float, mm, RMS distance of the inliers from the plane.
+    flatness : float, mm, peak-to-valley of the inliers' distances from the fitted
+        (least-squares) plane.
+    n_points : int, points given.   n_inliers : int.
+    inliers : (n_points,) bool.
+    tangent : (2, 3) orthonormal basis of the plane (its tilts are along these).
+    tilt_covariance : (2, 2) rad^2, covariance of the normal's tilt toward ``tangent``.
+    sigma_offset : float, mm, standard uncertainty of the plane's position along its
+        normal at the centroid (uncorrelated with the tilts there).
+    """
+
+    centroid: np.ndarray = None
+    rms: float = np.nan
+    flatness: float = np.nan
+    n_points: int = 0
+    n_inliers: int = 0
+    inliers: np.ndarray = None
+    tangent: np.ndarray = None
+    tilt_covariance: np.ndarray = None
+    sigma_offset: float = np.nan
+
+    def __post_init__(self):
+        super().__post_init__()
+        _freeze(self, "centroid", "inliers", "tangent", "tilt_covariance")
+
+    @property
+    def plane(self) -> Plane:
+        return Plane(self.normal, self.offset)
+
+    @property
+    def tilt_deg(self) -> float:
+        """Angle (deg) between the normal and world +z."""
+        return float(np.degrees(np.arccos(np.clip(self.normal[2], -1.0, 1.0))))
+
+    def sigma_at(self, point) -> float:
+        """Standard uncertainty (mm) of the plane's position along its normal at ``point``."""
+        q = self.tangent @ (np.asarray(point, dtype=np.float64) - self.centroid)
+        return float(np.sqrt(self.sigma_offset**2 + q @ self.tilt_covariance @ q))
+
+
+def _tls_plane(P: np.ndarray, w: np.ndarray):
+    """Weighted total least squares plane of points P (3, n) (coordinate rows, for
+    contiguous BLAS products): (normal, centroid, eigenvalues)."""
+    sw = w.sum()
+    c = (P @ w) / sw
+    Q = P - c[:, None]
+    S = (Q * w) @ Q.T
+    evals, evecs = np.linalg.eigh(S)
+    n = evecs[:, 0]
+    if n[2] < 0:
+        n = -n
+    return n, c, evals
+
+
+def _plane_from_3(p3: np.ndarray):
+    n = np.cross(p3[1] - p3[0], p3[2] - p3[0])
+    nn = np.linalg.norm(n)
+    if nn < 1e-12 * max(1.0, float(np.max(np.abs(p3)))) ** 2:
+        return None
+    n = n / nn
+    return n, float(n @ p3[0])
+
+
+def _lmeds_plane(p: np.ndarray, rng: np.random.Generator, *, trials: int = 300,
+                 max_points: int = 20000):
+    """Least-median-of-squares plane from random triples (breakdown 50 %)."""
+    sub = p if p.shape[0] <= max_points else p[rng.choice(p.shape[0], max_points,
+                                                          replace=False)]
+    best = None
+    best_med = np.inf
+    for _ in range(trials):
+        idx = rng.choice(sub.shape[0], 3, replace=False)
+        pl = _plane_from_3(sub[idx])
+        if pl is None:
+            continue
+        n, d = pl
+        med = float(np.median((sub @ n - d) ** 2))
+        if med < best_med:
+            best_med, best = med, (n, d)
+    if best is None:
+        raise MetrologyError("the points are collinear: no plane")
+    return best[0], best[1], np.sqrt(best_med)
+
+
+def fit_plane(points, *, weights=None, robust: bool = False, seed: int = 0,
+              max_iter: int = 50) -> PlaneFit:
+    """Fit a plane to points (total least squares, optionally robust).
+
+    Parameters
+    ----------
+    points : (n, 3) array_like of float, mm, or PointCloud (its valid points)
+        Non-finite rows are ignored.
+    weights : (n,) array_like of float, optional
+        Relative weights (e.g. 1 / sigma_z^2); the uncertainty is scaled by the
+        residuals, so only their ratios matter.
+    robust : bool
+        Least median of squares start (random triples from ``seed``, breakdown point
+        50 %), then Tukey-biweight iteratively reweighted least squares; points with zero
+        final weight are outliers. Otherwise plain least squares on all points.
+    seed : int
+        Seeds the robust start.
+
+    Returns
+    -------
+    PlaneFit
+
+    Raises
+    ------
+    MetrologyError
+        Fewer than 3 points, collinear points, or fewer than 3 inliers.
+    """
+    if isinstance(points, PointCloud):
+        p = points.points()
+        if weights is None:
+            s = points.sigma_z[points.mask]
+            if np.all(np.isfinite(s) & (s > 0)):
+                weights = 1.0 / s**2
+        finite = np.ones(p.shape[0], dtype=bool)
+    else:
+        p = np.asarray(points, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise MetrologyError(f"points must have shape (n, 3), got {p.shape}")
+        finite = np.all(np.isfinite(p), axis=1)
+    n_all = p.shape[0]
+    if weights is None:
+        w0 = np.ones(n_all)
+    else:
+        w0 = np.asarray(weights, dtype=np.float64).reshape(-1)
+        if w0.shape[0] != n_all:
+            raise MetrologyError(f"weights must have {n_all} values, got {w0.shape[0]}")
+        finite &= np.isfinite(w0) & (w0 >= 0)
+    pf = p[finite]
+    wf = w0[finite]
+    if pf.shape[0] < 3 or np.count_nonzero(wf) < 3:
+        raise MetrologyError(f"a plane needs at least 3 points, got {pf.shape[0]}")
+    wf = wf / wf.mean()
+    P = np.ascontiguousarray(pf.T)  # (3, n)
+    keep = np.ones(pf.shape[0], dtype=bool)
+    if robust:
+        rng = np.random.default_rng(seed)
+        n, d, med = _lmeds_plane(pf, rng)
+        r = n @ P - d
+        scale = max(_MAD * np.median(np.abs(r)), 1e-12)
+        extent = float(np.max(np.ptp(P, axis=1))) + 1e-12
+        for _ in range(max_iter):
+            u = r / (_TUKEY_C * scale)
+            wt = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+            wr = wf * wt
+            if np.count_nonzero(wr) < 3:
+                raise MetrologyError("robust plane fit: fewer than 3 inliers")
+            n_new, c, _ = _tls_plane(P, wr)
+            d_new = float(n_new @ c)
+            r = n_new @ P - d_new
+            inl = wt > 0
+            # robust scale from at most ~200k of the inliers (a regular subsample)
+            ri = r[inl]
+            ri = ri[::max(1, ri.size // 200_000)]
+            new_scale = max(_MAD * np.median(np.abs(ri)), 1e-12)
+            # converged when the plane moves by less than 1e-3 of its own standard
+            # uncertainty (offset scale / sqrt(n); tilt that over the points' extent)
+            n_in = max(int(np.count_nonzero(inl)), 1)
+            tol = 1e-3 * new_scale / np.sqrt(n_in)
+            done = (abs(d_new - d) < tol and np.linalg.norm(n_new - n) * extent < tol
+                    and abs(new_scale - scale) < 1e-3 * scale)
+            n, d, scale = n_new, d_new, new_scale
+            if done:
+                break
+        keep = np.abs(r) < _TUKEY_C * scale
+        if np.count_nonzero(keep) < 3:
+            raise MetrologyError("robust plane fit: fewer than 3 inliers")
+    Pk = P if robust is False else P[:, keep]
+    wk = wf[keep]
+    n, c, evals = _tls_plane(Pk, wk)
+    if evals[1] <= 1e-12 * max(evals[2], 1e-300):
+        raise MetrologyError("the points are collinear: no plane")
+    d = float(n @ c)
+    r = n @ Pk - d
+    nk = Pk.shape[1]
+    wk_n = wk / wk.mean()
+    dof = max(nk - 3, 1)
+    s2 = float(np.sum(wk_n * r * r) / dof)
+    T = _tangent_basis(n)
+    q = T @ (Pk - c[:, None])  # (2, nk)
+    M = (q * wk_n) @ q.T
+    try:
+        tilt_cov = s2 * np.linalg.inv(M)
+    except np.linalg.LinAlgError:
+        raise MetrologyError("the points are collinear: no plane") from None
+    inliers = np.zeros(n_all, dtype=bool)
+    idx = np.flatnonzero(finite)
+    inliers[idx[keep]] = True
+    return PlaneFit(n, d, centroid=c, rms=float(np.sqrt(np.mean(r * r))),
+                    flatness=float(r.max() - r.min()), n_points=int(n_all),
+                    n_inliers=int(nk), inliers=inliers, tangent=T, tilt_covariance=tilt_cov,
+                    sigma_offset=float(np.sqrt(s2 / wk_n.sum())))
+
+
+@dataclass(frozen=True)
+class PlaneDistance:
+    """Distance between two (nearly parallel) planes.
+
+    Attributes
+    ----------
+    distance : float, mm, signed distance of ``a``'s point ``at`` from plane ``b``,
+        along ``b``'s normal (positive: ``a`` is on the camera side of ``b``).
+    angle_deg : float, angle between the normals.
+    sigma : float, mm, standard uncertainty of ``distance`` from the fits' uncertainties
+        (planes without uncertainty count as exact).
+    at : (3,) mm, the point of ``a`` where the distance is taken.
+    """
+
+    distance: float
+    angle_deg: float
+    sigma: float
+    at: tuple
+
+
+def plane_distance(a: Plane, b: Plane, *, at=None) -> PlaneDistance:
+    """Distance of plane ``a`` from plane ``b`` (e.g. a scan's plane from the reference).
+
+    Parameters
+    ----------
+    a, b : Plane or PlaneFit
+    at : (3,) array_like, optional
+        Where to take the distance: the point of ``a`` nearest to it. Default ``a``'s
+        centroid when ``a`` is a fit, else the foot of the world origin on ``a``.
+    """
+    if at is None:
+        at = getattr(a, "centroid", None)
+        if at is None:
+            at = a.normal * a.offset
+    at = np.asarray(at, dtype=np.float64).reshape(3)
+    # the point of a nearest to `at`
+    pa = at - (at @ a.normal - a.offset) * a.normal
+    dist = float(pa @ b.normal - b.offset)
+    ang = float(np.degrees(np.arccos(np.clip(abs(a.normal @ b.normal), -1.0, 1.0))))
+    var = 0.0
+    for pl in (a, b):
+        if isinstance(pl, PlaneFit) and np.isfinite(pl.sigma_offset):
+            var += pl.sigma_at(pa) ** 2
+    return PlaneDistance(dist, ang, float(np.sqrt(var)), tuple(float(x) for x in pa))

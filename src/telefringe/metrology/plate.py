@@ -1,0 +1,247 @@
+"""Circle-marker plates: 3D marker centres, their spacing, the plate's plane and height
+(the paper's Table 3)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from telefringe.metrology._common import _MAD, MetrologyError, _freeze, _poly_design
+from telefringe.metrology.planes import Plane, PlaneDistance, PlaneFit, fit_plane, plane_distance
+from telefringe.reconstruction.reconstruct import PointCloud
+
+
+@dataclass(frozen=True, eq=False)
+class MarkerCentres:
+    """3D centres of markers seen in the camera image.
+
+    Attributes
+    ----------
+    xyz : (n, 3) mm, NaN where not measured.
+    sigma_xyz : (n, 3) mm, standard uncertainties of the local fits.
+    n_points : (n,) int, cloud points used for each marker.
+    valid : (n,) bool.
+    """
+
+    xyz: np.ndarray
+    sigma_xyz: np.ndarray
+    n_points: np.ndarray
+    valid: np.ndarray
+
+    def __post_init__(self):
+        _freeze(self, "xyz", "sigma_xyz", "n_points", "valid")
+
+
+def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None = None,
+                      outer_px: float | None = None, degree: int = 2, min_points: int = 30,
+                      sigma_px=0.0) -> MarkerCentres:
+    """3D position of marker centres from their camera-image centres.
+
+    Around each marker, X, Y and Z of the cloud are smooth functions of the camera pixel
+    (u, v) (affine on a plane for a telecentric camera; distortion adds a slowly varying
+    term): a weighted polynomial of ``degree`` in (u - u_c, v - v_c) is fitted to each
+    over the annulus ``inner_px <= r <= outer_px`` (the light surround: the dark marker
+    itself decodes poorly) and evaluated at the centre. For a telecentric camera the
+    image of a circle's centre is the centre of its image ellipse, so this is the 3D
+    centre of the marker on the surface. No rig model is needed.
+
+    Parameters
+    ----------
+    cloud : PointCloud (organised, camera pixel grid).
+    centres_px : (n, 2) array_like of float, (u, v) px; NaN rows are skipped.
+    inner_px, outer_px : float, optional
+        Annulus radii (px). Defaults: 0.3 and 0.48 times the median distance between
+        neighbouring centres (markers of half the pitch in diameter, as on the paper's
+        plate, end at 0.25).
+    degree : int, 1 or 2 (or 3).
+    min_points : int, fewer valid points in the annulus leaves the marker unmeasured.
+    sigma_px : float or (n,) array_like
+        Standard uncertainty of the image centres (px, per axis). The uncertainty of the
+        result includes it (through the local slopes of X, Y, Z with u and v) besides the
+        noise of the cloud; with the default 0 only the cloud's noise counts.
+
+    Returns
+    -------
+    MarkerCentres
+    """
+    c = np.asarray(centres_px, dtype=np.float64)
+    if c.ndim != 2 or c.shape[1] != 2:
+        raise MetrologyError(f"centres_px must have shape (n, 2), got {c.shape}")
+    if degree not in (1, 2, 3):
+        raise MetrologyError(f"degree must be 1, 2 or 3, got {degree!r}")
+    ok = np.all(np.isfinite(c), axis=1)
+    if inner_px is None or outer_px is None:
+        cf = c[ok]
+        if cf.shape[0] < 2:
+            raise MetrologyError("give inner_px and outer_px: fewer than 2 marker centres "
+                                 "to estimate the spacing from")
+        dd = np.linalg.norm(cf[:, None, :] - cf[None, :, :], axis=2)
+        np.fill_diagonal(dd, np.inf)
+        spacing = float(np.median(dd.min(axis=1)))
+        inner_px = 0.3 * spacing if inner_px is None else inner_px
+        outer_px = 0.48 * spacing if outer_px is None else outer_px
+    inner_px = float(inner_px)
+    outer_px = float(outer_px)
+    if not (0 <= inner_px < outer_px):
+        raise MetrologyError(f"need 0 <= inner_px < outer_px, got {inner_px}, {outer_px}")
+    rows, cols = cloud.shape
+    xyz = cloud.xyz
+    sig = cloud.sigma_line
+    n = c.shape[0]
+    s_px = np.broadcast_to(np.asarray(sigma_px, dtype=np.float64), (n,))
+    out = np.full((n, 3), np.nan)
+    out_s = np.full((n, 3), np.nan)
+    npts = np.zeros(n, dtype=np.int64)
+    for k in range(n):
+        if not ok[k]:
+            continue
+        uc, vc = c[k]
+        u_lo = max(int(np.floor(uc - outer_px)), 0)
+        u_hi = min(int(np.ceil(uc + outer_px)), cols - 1)
+        v_lo = max(int(np.floor(vc - outer_px)), 0)
+        v_hi = min(int(np.ceil(vc + outer_px)), rows - 1)
+        if u_hi < u_lo or v_hi < v_lo:
+            continue
+        vv, uu = np.mgrid[v_lo:v_hi + 1, u_lo:u_hi + 1]
+        du = (uu - uc).ravel()
+        dv = (vv - vc).ravel()
+        r2 = du * du + dv * dv
+        sel = (r2 >= inner_px**2) & (r2 <= outer_px**2)
+        win = xyz[v_lo:v_hi + 1, u_lo:u_hi + 1].reshape(-1, 3)
+        sel &= np.all(np.isfinite(win), axis=1)
+        if np.count_nonzero(sel) < max(min_points, 3 * (degree + 1) * (degree + 2) // 2):
+            continue
+        s = sig[v_lo:v_hi + 1, u_lo:u_hi + 1].ravel()[sel]
+        w = 1.0 / s**2 if np.all(np.isfinite(s) & (s > 0)) else np.ones(s.shape[0])
+        w = w / w.mean()
+        A = _poly_design(du[sel] / outer_px, dv[sel] / outer_px, degree)
+        Y = win[sel]
+        sw = np.sqrt(w)
+        # one pass of rejection of gross outliers (e.g. a wrong fringe order) at 5 sigma
+        keep = np.ones(A.shape[0], dtype=bool)
+        for _ in range(2):
+            coef, *_ = np.linalg.lstsq(A[keep] * sw[keep, None], Y[keep] * sw[keep, None],
+                                       rcond=None)
+            res = Y - A @ coef
+            rz = res @ cloud.direction  # residuals along the camera line
+            scale = _MAD * np.median(np.abs(rz[keep])) + 1e-15
+            new_keep = np.abs(rz) <= 5.0 * scale
+            if np.array_equal(new_keep, keep):
+                break
+            keep = new_keep
+        Ak = A[keep] * sw[keep, None]
+        if Ak.shape[0] <= Ak.shape[1]:
+            continue
+        coef, *_ = np.linalg.lstsq(Ak, Y[keep] * sw[keep, None], rcond=None)
+        res = (Y[keep] - A[keep] @ coef) * sw[keep, None]
+        dof = Ak.shape[0] - Ak.shape[1]
+        s2 = np.sum(res * res, axis=0) / dof  # per coordinate
+        cov00 = np.linalg.inv(Ak.T @ Ak)[0, 0]
+        out[k] = coef[0]
+        # the centre's own error moves the point along the surface: d xyz / d(u, v)
+        slope2 = (coef[1] ** 2 + coef[2] ** 2) / outer_px**2
+        out_s[k] = np.sqrt(s2 * cov00 + s_px[k] ** 2 * slope2)
+        npts[k] = int(np.count_nonzero(keep))
+    return MarkerCentres(out, out_s, npts, np.all(np.isfinite(out), axis=1))
+
+
+@dataclass(frozen=True, eq=False)
+class GridSpacing:
+    """Distances between neighbouring marker centres (as in the paper's Table 3).
+
+    Attributes
+    ----------
+    nominal_mm : float, the nominal pitch.
+    dist_x : (rows, cols - 1) mm, 3D distance between markers (i, j) and (i, j + 1)
+        (along the grid's columns = world x); NaN where one is missing.
+    dist_y : (rows - 1, cols) mm, between (i, j) and (i + 1, j) (along y).
+    mean_x, mean_y : float, mm.   std_x, std_y : float, mm (ddof = 1).
+    abs_err_x, abs_err_y : float, mm, |mean - nominal|.
+    rms_err_x, rms_err_y : float, mm, RMS of (distance - nominal).
+    n_x, n_y : int, number of distances.
+    """
+
+    nominal_mm: float
+    dist_x: np.ndarray
+    dist_y: np.ndarray
+    mean_x: float
+    mean_y: float
+    std_x: float
+    std_y: float
+    abs_err_x: float
+    abs_err_y: float
+    rms_err_x: float
+    rms_err_y: float
+    n_x: int
+    n_y: int
+
+    def __post_init__(self):
+        _freeze(self, "dist_x", "dist_y")
+
+
+def grid_spacing(centres_xyz, *, rows: int, cols: int, pitch_mm: float) -> GridSpacing:
+    """Neighbour distances of a grid of 3D marker centres.
+
+    Parameters
+    ----------
+    centres_xyz : (rows * cols, 3) or (rows, cols, 3) array_like, mm, row-major target
+        order (row i along y, column j along x); NaN rows for missing markers.
+    rows, cols : int.   pitch_mm : float, the nominal pitch.
+    """
+    c = np.asarray(centres_xyz, dtype=np.float64).reshape(int(rows), int(cols), 3)
+    dx = np.linalg.norm(np.diff(c, axis=1), axis=2)
+    dy = np.linalg.norm(np.diff(c, axis=0), axis=2)
+    fx = dx[np.isfinite(dx)]
+    fy = dy[np.isfinite(dy)]
+    if fx.size < 2 or fy.size < 2:
+        raise MetrologyError(
+            f"too few neighbouring markers measured ({fx.size} along x, {fy.size} along y)")
+    p = float(pitch_mm)
+    return GridSpacing(p, dx, dy, float(fx.mean()), float(fy.mean()), float(fx.std(ddof=1)),
+                       float(fy.std(ddof=1)), abs(float(fx.mean()) - p),
+                       abs(float(fy.mean()) - p), float(np.sqrt(np.mean((fx - p) ** 2))),
+                       float(np.sqrt(np.mean((fy - p) ** 2))), int(fx.size), int(fy.size))
+
+
+@dataclass(frozen=True, eq=False)
+class PlateMeasurement:
+    """A circle-marker plate measured from a scan (one row of the paper's Table 3).
+
+    Attributes
+    ----------
+    plane : PlaneFit, robust fit to the whole cloud.
+    z : PlaneDistance, the plane's distance from the reference plane (Z measured).
+    centres : MarkerCentres, (rows * cols) in target order.
+    spacing : GridSpacing.
+    """
+
+    plane: PlaneFit
+    z: PlaneDistance
+    centres: MarkerCentres
+    spacing: GridSpacing
+
+
+def measure_plate(cloud: PointCloud, centres_px, *, rows: int, cols: int, pitch_mm: float,
+                  reference: Plane | None = None, inner_px: float | None = None,
+                  outer_px: float | None = None, seed: int = 0) -> PlateMeasurement:
+    """Measure a circle-marker plate: its plane, its height and its marker spacing.
+
+    Parameters
+    ----------
+    cloud : PointCloud.
+    centres_px : (rows * cols, 2) camera-image marker centres in target order (row-major,
+        NaN where not found), e.g. ``telefringe.targets.detect_circle_grid(...).centers``.
+    rows, cols, pitch_mm : the plate's grid.
+    reference : Plane, default Z = 0 (the calibration's reference pose).
+    inner_px, outer_px : annulus of :func:`marker_centres_3d`.
+    seed : seeds the robust plane fit.
+    """
+    c = np.asarray(centres_px, dtype=np.float64)
+    if c.shape != (int(rows) * int(cols), 2):
+        raise MetrologyError(f"centres_px must have shape ({rows * cols}, 2), got {c.shape}")
+    plane = fit_plane(cloud, robust=True, seed=seed)
+    ref = Plane.horizontal(0.0) if reference is None else reference
+    centres = marker_centres_3d(cloud, c, inner_px=inner_px, outer_px=outer_px)
+    spacing = grid_spacing(centres.xyz, rows=rows, cols=cols, pitch_mm=pitch_mm)
+    return PlateMeasurement(plane, plane_distance(plane, ref), centres, spacing)
