@@ -85,7 +85,8 @@ import telefringe.cli
 from telefringe.io.rig import load_rig
 from telefringe.io.scan import read_scan
 from telefringe.fringes.decode import decode
-from telefringe.reconstruction.reconstruct import triangulate, height_map
+from telefringe.reconstruction.heightmap import height_map
+from telefringe.reconstruction.telecentric import triangulate
 from telefringe.io import export
 mark("imports (cli, rig.json reader, decode, reconstruct)")
 from telefringe.geometry._distortion_kernels import undistort_point
@@ -140,7 +141,8 @@ def main() -> None:
     from telefringe.fringes.decode import decode
     from telefringe.io import export
     from telefringe.io.scan import read_scan, write_scan
-    from telefringe.reconstruction.reconstruct import Triangulator, height_map, triangulate
+    from telefringe.reconstruction.heightmap import height_map
+    from telefringe.reconstruction.telecentric import Triangulator, triangulate
     from telefringe.simulate.presets import get_preset
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import make_scene

@@ -24,7 +24,8 @@ from telefringe.io.export import (
     write_reconstruction,
 )
 from telefringe.metrology.core import BGANominal, fit_plane, measure_bga
-from telefringe.reconstruction.reconstruct import PointCloud, height_map
+from telefringe.reconstruction.cloud import PointCloud
+from telefringe.reconstruction.heightmap import height_map
 
 PNG_SIG = b"\x89PNG\r\n\x1a\n"
 
@@ -146,7 +147,7 @@ def test_previews_are_png(tmp_path):
     p = write_height_png(tmp_path / "h.png", hm, title="test")
     assert p.read_bytes()[:8] == PNG_SIG
     # an all-NaN map still renders
-    from telefringe.reconstruction.reconstruct import HeightMap
+    from telefringe.reconstruction.heightmap import HeightMap
 
     p = write_height_png(tmp_path / "nan.png", HeightMap(np.full((4, 5), np.nan, np.float32),
                                                          0.0, 0.0, 0.1))
@@ -209,7 +210,7 @@ def test_height_preview_colours_follow_the_colour_bar(tmp_path):
     import cv2
 
     from telefringe.io.export import height_colours
-    from telefringe.reconstruction.reconstruct import HeightMap
+    from telefringe.reconstruction.heightmap import HeightMap
 
     z = np.tile(np.linspace(-1.0, 1.0, 200), (100, 1))  # rising left to right, mm
     z[:10, :10] = np.nan
@@ -229,7 +230,7 @@ def test_height_preview_colours_follow_the_colour_bar(tmp_path):
     assert tuple(height_colours(np.array([lo - 1, hi + 1]), lo, hi)[1]) == (253, 231, 37)
     code = ("import sys, numpy as np\n"
             "from telefringe.io.export import write_height_png\n"
-            "from telefringe.reconstruction.reconstruct import HeightMap\n"
+            "from telefringe.reconstruction.heightmap import HeightMap\n"
             f"write_height_png({str(tmp_path / 'x.png')!r}, HeightMap(np.zeros((4, 5)), 0, 0, 1))\n"
             "assert 'matplotlib' not in sys.modules\n")
     subprocess.run([sys.executable, "-c", code], check=True)

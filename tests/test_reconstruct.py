@@ -10,19 +10,16 @@ import pytest
 from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
 from telefringe.geometry.so3 import rotation_from_rotvec
-from telefringe.reconstruction.reconstruct import (
+from telefringe.reconstruction.cloud import (
     FLAG_INCONSISTENT,
     FLAG_NO_PHASE,
     FLAG_OUTSIDE,
     FLAG_UNCERTAIN,
-    HeightMap,
     PointCloud,
     TriangulationError,
-    Triangulator,
-    height_map,
-    triangulate,
-    triangulate_pixels,
 )
+from telefringe.reconstruction.heightmap import HeightMap, height_map
+from telefringe.reconstruction.telecentric import Triangulator, triangulate, triangulate_pixels
 
 SHAPE = (96, 128)
 
@@ -73,7 +70,7 @@ def surface_points(rig, shape=SHAPE, *, seed=0, depth=2.0):
 
 def test_compiled_undistortion_matches_the_model():
     from telefringe.geometry.distortion import ConvergenceError, undistort_sensor
-    from telefringe.reconstruction.reconstruct import _undistort
+    from telefringe.reconstruction.telecentric import _undistort
 
     rng = np.random.default_rng(5)
     xd, yd = rng.uniform(-3, 3, (2, 1000))
@@ -131,7 +128,7 @@ def test_exact_recovery_strong_distortion():
     # distortion strong enough that the fixed-step pass leaves pixels to the slow pass
     rig = make_rig(k1_p=2e-2, s1_p=3e-3, s2_p=-3e-3)
     X, up, vp = surface_points(rig, depth=6.0)
-    from telefringe.reconstruction import reconstruct as rec
+    from telefringe.reconstruction import telecentric as rec
 
     tri = Triangulator.for_shape(rig, SHAPE)
     calls = []
@@ -187,7 +184,7 @@ def test_u_only_kernel_matches_the_iterated_solution(k_p):
     assert np.max(np.abs(u_back - up[m])) < 1e-8
     # the strong distortion puts points beyond the radius where the kernel can skip the
     # fold check (they are solved again with it)
-    from telefringe.reconstruction.reconstruct import _unfolded_radius2
+    from telefringe.reconstruction.telecentric import _unfolded_radius2
 
     xu, yu = rig.projector.world_to_sensor(fast.xyz[m])
     assert np.any(xu**2 + yu**2 > _unfolded_radius2(*k_p)) == (k_p[0] > 0.1)
@@ -196,7 +193,7 @@ def test_u_only_kernel_matches_the_iterated_solution(k_p):
 @pytest.mark.parametrize("k", [(7e-5, 1e-5, -2e-5), (-2e-2, 3e-3, -3e-3), (0.0, 0.0, 1e-2),
                                (-5e-1, 0.0, 0.0), (0.0, 0.0, 0.0)])
 def test_no_fold_within_the_unfolded_radius(k):
-    from telefringe.reconstruction.reconstruct import _unfolded_radius2
+    from telefringe.reconstruction.telecentric import _unfolded_radius2
 
     k1, s1, s2 = k
     r2 = _unfolded_radius2(*k)
@@ -529,8 +526,8 @@ def test_binned_height_map():
 
 
 def test_scan_radiance_takes_the_longest_unsaturated_exposure():
+    from telefringe.fringes.images import scan_radiance
     from telefringe.fringes.scan import PhaseGroup, Scan, ScanManifest
-    from telefringe.reconstruction.reconstruct import scan_radiance
 
     # two groups at exposure 1 and one at 0.25; the true radiance (DN at exposure 1) is
     # 100 on the left half and 400 (saturating exposure 1) on the right

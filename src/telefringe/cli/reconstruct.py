@@ -21,7 +21,7 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
 
     Returns
     -------
-    telefringe.reconstruct.Reconstruction
+    telefringe.reconstruction.pipeline.Reconstruction
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -38,7 +38,8 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
         write_points,
     )
     from telefringe.io.scan import load_scan_manifest, read_scan
-    from telefringe.reconstruction.reconstruct import TriangulationError, reconstruct_scan
+    from telefringe.reconstruction.cloud import TriangulationError
+    from telefringe.reconstruction.pipeline import reconstruct_scan
 
     output = Path(output)
     check_can_write(output, force=force)

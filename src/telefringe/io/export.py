@@ -100,7 +100,7 @@ def write_points(path, cloud, *, texture=None, radiance=None, force: bool = Fals
     Arrays: ``xyz`` (rows, cols, 3) float64 mm, NaN where invalid; ``mask`` bool;
     ``sigma_z`` float64 mm; ``sigma_line`` float64 mm (along the camera line);
     ``direction`` (3,) the camera's viewing direction; ``flags`` uint8 (why a point is
-    invalid, ``telefringe.reconstruct.FLAG_*``); ``residual`` float64 projector px (only
+    invalid, ``telefringe.reconstruction.cloud.FLAG_*``); ``residual`` float64 projector px (only
     with both fringe axes); ``texture`` float32 (rows, cols) fringe-free camera image
     (optional, for marker detection); ``radiance`` float32 (rows, cols) the decoder's
     background per unit exposure (optional, for BGA highlights); ``format`` and
@@ -144,7 +144,7 @@ def read_points(path):
 
     Returns
     -------
-    cloud : telefringe.reconstruct.PointCloud
+    cloud : telefringe.reconstruction.cloud.PointCloud
     texture : (rows, cols) float32 ndarray or None
 
     Raises
@@ -158,7 +158,7 @@ def read_points(path):
 
 def load_points(path) -> PointsFile:
     """Like :func:`read_points`, with every optional array (:class:`PointsFile`)."""
-    from telefringe.reconstruction.reconstruct import PointCloud
+    from telefringe.reconstruction.cloud import PointCloud
 
     path = Path(path)
     if path.is_dir():
@@ -292,7 +292,7 @@ def read_height_tiff(path):
     """Read a height map written by :func:`write_height_tiff` (HeightMap)."""
     import tifffile
 
-    from telefringe.reconstruction.reconstruct import HeightMap
+    from telefringe.reconstruction.heightmap import HeightMap
 
     path = Path(path)
     side = path.with_suffix(".json")
@@ -577,7 +577,7 @@ def _f(x):
 
 def cloud_summary(cloud) -> dict:
     """Counts and uncertainty figures of a point cloud."""
-    from telefringe.reconstruction.reconstruct import (
+    from telefringe.reconstruction.cloud import (
         FLAG_INCONSISTENT,
         FLAG_NO_PHASE,
         FLAG_NOT_CONVERGED,

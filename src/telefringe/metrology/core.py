@@ -3,7 +3,7 @@
 Every fit returns a small frozen result with its uncertainty; degenerate input raises
 :class:`MetrologyError` (a ``ValueError``) with a message that says what is missing.
 Point arrays are (n, 3) in mm (world frame); organised clouds are
-:class:`telefringe.reconstruct.PointCloud` (one point per camera pixel, NaN = invalid).
+:class:`telefringe.reconstruction.cloud.PointCloud` (one point per camera pixel, NaN = invalid).
 
 Conventions
 -----------
@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from telefringe.reconstruction.reconstruct import PointCloud
+from telefringe.reconstruction.cloud import PointCloud
 
 __all__ = [
     "MetrologyError",
@@ -1594,7 +1594,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None,
     cloud : PointCloud.   nominal : BGANominal.
     image : (rows, cols) array_like, optional
         An unsaturated image of the scene in the camera's pixels (e.g. the HDR radiance
-        of the decoder's background, :attr:`telefringe.reconstruct.Reconstruction.radiance`).
+        of the decoder's background,
+        :attr:`telefringe.reconstruction.pipeline.Reconstruction.radiance`).
         When given, each ball's position on the substrate comes from its specular
         highlight (Gaussian fit, ~0.01 px), offset by the median (highlight - cap centre)
         of all balls: with a telecentric camera and projector every ball shows its
