@@ -9,6 +9,7 @@ import pytest
 
 from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
+from telefringe.geometry.distortion import ConvergenceError
 from telefringe.geometry.so3 import rotation_from_rotvec
 from telefringe.reconstruction.cloud import (
     FLAG_INCONSISTENT,
@@ -68,21 +69,76 @@ def surface_points(rig, shape=SHAPE, *, seed=0, depth=2.0):
     return X, up, vp
 
 
-def test_compiled_undistortion_matches_the_model():
-    from telefringe.geometry.distortion import ConvergenceError, undistort_sensor
-    from telefringe.reconstruction.telecentric import _undistort
+def _device(k, *, m=0.8, seed=7):
+    rng = np.random.default_rng(seed)
+    return TelecentricDevice(
+        Intrinsics(m=m, du=0.0052, dv=0.0047, u0=640.3, v0=511.8, k1=k[0], s1=k[1], s2=k[2],
+                   width=1280, height=1024),
+        rotation_from_rotvec(rng.normal(0, 1, 3)), rng.normal(0, 2, 2))
 
+
+@pytest.mark.parametrize("k", [(2e-3, 2e-4, -1e-4), (0.0, 0.0, 0.0), (-5e-3, 0.0, 1e-3)])
+def test_compiled_device_model_matches_the_numpy_model(k):
+    # the kernels' telecentric model (devices/_telecentric_kernels) against
+    # TelecentricDevice, to rounding: 2x the measured worst of these three cases, 5.7e-13
+    # px for the projection (the kernels multiply by 1 / pitch where the NumPy model
+    # divides) and 1.8e-15 mm for the back-projection (the same Newton iteration)
+    from telefringe.devices import _telecentric_kernels as tk
+
+    dev = _device(k)
     rng = np.random.default_rng(5)
-    xd, yd = rng.uniform(-3, 3, (2, 1000))
-    for k in [(2e-3, 2e-4, -1e-4), (0.0, 0.0, 0.0), (-5e-3, 0.0, 1e-3)]:
-        a = _undistort(xd, yd, *k)
-        b = undistort_sensor(xd, yd, *k)
-        assert np.max(np.abs(a[0] - b[0])) < 1e-13 and np.max(np.abs(a[1] - b[1])) < 1e-13
-    xd[3] = np.nan
-    assert np.isnan(_undistort(xd, yd, *k)[0][3])
-    # beyond the invertible range: the model's error
+    X = rng.uniform(-4, 4, (1000, 3))
+    u, v = tk.project_many(X, *tk.kernel_args(dev))
+    u_ref, v_ref = dev.project(X)
+    assert np.max(np.abs(u - u_ref)) < 1.2e-12 and np.max(np.abs(v - v_ref)) < 1.2e-12
+    u = rng.uniform(-0.5, 1279.5, 1000)
+    v = rng.uniform(-0.5, 1023.5, 1000)
+    u[3] = np.nan
+    intr, R, t_dev = tk.kernel_args(dev)
+    a, b = np.empty(1000), np.empty(1000)
+    assert tk.backproject_lines(u, v, intr, t_dev, a, b) == 0
+    origin, direction = dev.backproject(u, v)
+    mine = a[:, None] * R[0] + b[:, None] * R[1]
+    ok = np.isfinite(u)
+    assert np.max(np.abs(mine[ok] - origin[ok])) < 4e-15  # mm
+    assert np.isnan(a[3]) and np.all(np.isnan(origin[3]))
+    np.testing.assert_array_equal(direction, R[2])
+    # beyond the invertible range: counted by the kernel, raised by the model
+    strong = _device((-0.05, 0.0, 0.0))
+    a1, b1 = np.empty(1), np.empty(1)
+    intr, R, t_dev = tk.kernel_args(strong)
+    assert tk.backproject_lines(np.array([6000.0]), np.array([6000.0]), intr, t_dev, a1, b1) == 1
     with pytest.raises(ConvergenceError):
-        _undistort(np.array([30.0]), np.array([30.0]), -0.05, 0.0, 0.0)
+        strong.backproject(6000.0, 6000.0)
+    with pytest.raises(ConvergenceError):
+        Triangulator.for_pixels(Rig(strong, make_rig().projector), 6000.0, 6000.0)
+
+
+@pytest.mark.parametrize("k_p", [(3e-4, 5e-5, -8e-5), (2e-1, 3e-2, -3e-2)])
+def test_projector_cubics_are_the_device_model(k_p):
+    # the fast path's special form (the projector's distorted sensor coordinates as cubics
+    # in s along a camera line) against the device model's projection of the line's points
+    from telefringe.reconstruction import telecentric as tel
+
+    rig = make_rig(k1_p=k_p[0], s1_p=k_p[1], s2_p=k_p[2])
+    tri = Triangulator.for_shape(rig, SHAPE)
+    ki = rig.projector.intrinsics
+    coef = tri.coef
+    t_p = ki.m * rig.projector.t_dev
+    kp = np.zeros(20)
+    kp[4:7] = ki.k1, ki.s1, ki.s2
+    kp[9:15] = coef[0, 0], coef[0, 1], coef[0, 2], coef[1, 0], coef[1, 1], coef[1, 2]
+    kp[15:17] = t_p
+    rng = np.random.default_rng(8)
+    for i, j in ((0, 0), (40, 70), (95, 127)):
+        for s in rng.uniform(-6, 6, 4):
+            c = tel._line_cubics(tri.a[i, j], tri.b[i, j], kp)
+            xd = ((c[3] * s + c[2]) * s + c[1]) * s + c[0]
+            yd = ((c[7] * s + c[6]) * s + c[5]) * s + c[4]
+            u, v = rig.projector.project(tri.line_points(np.full(SHAPE, s))[i, j])
+            xd_ref, yd_ref = rig.projector.pixel_to_sensor(u, v)
+            # rounding: measured worst 5.6e-16 and 1.8e-15 mm for the two cases
+            assert abs(xd - xd_ref) < 4e-15 and abs(yd - yd_ref) < 4e-15
 
 
 @pytest.mark.parametrize("k_c", [(2e-3, 2e-4, -1e-4), (0.0, 0.0, 0.0), (1e-1, 1e-2, -1e-2)])
@@ -184,19 +240,19 @@ def test_u_only_kernel_matches_the_iterated_solution(k_p):
     assert np.max(np.abs(u_back - up[m])) < 1e-8
     # the strong distortion puts points beyond the radius where the kernel can skip the
     # fold check (they are solved again with it)
-    from telefringe.reconstruction.telecentric import _unfolded_radius2
+    from telefringe.geometry._distortion_kernels import unfolded_radius2
 
     xu, yu = rig.projector.world_to_sensor(fast.xyz[m])
-    assert np.any(xu**2 + yu**2 > _unfolded_radius2(*k_p)) == (k_p[0] > 0.1)
+    assert np.any(xu**2 + yu**2 > unfolded_radius2(*k_p)) == (k_p[0] > 0.1)
 
 
 @pytest.mark.parametrize("k", [(7e-5, 1e-5, -2e-5), (-2e-2, 3e-3, -3e-3), (0.0, 0.0, 1e-2),
                                (-5e-1, 0.0, 0.0), (0.0, 0.0, 0.0)])
 def test_no_fold_within_the_unfolded_radius(k):
-    from telefringe.reconstruction.telecentric import _unfolded_radius2
+    from telefringe.geometry._distortion_kernels import unfolded_radius2
 
     k1, s1, s2 = k
-    r2 = _unfolded_radius2(*k)
+    r2 = unfolded_radius2(*k)
     rng = np.random.default_rng(6)
     r = np.sqrt(min(r2, 1e4)) * np.sqrt(rng.uniform(0, 1, 20000))
     r[:100] = np.sqrt(min(r2, 1e4))  # the rim

@@ -49,10 +49,14 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from telefringe.devices import _telecentric_kernels as _tk
 from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import TelecentricDevice
-from telefringe.geometry._distortion_kernels import distortion_residual, undistort_point
-from telefringe.geometry.distortion import undistort_sensor
+from telefringe.geometry._distortion_kernels import (
+    distortion_jacobian,
+    is_unfolded,
+    unfolded_radius2,
+)
 from telefringe.reconstruction._rig import as_rig as _as_rig
 from telefringe.reconstruction.cloud import (
     FLAG_INCONSISTENT,
@@ -117,12 +121,10 @@ class Triangulator:
             raise TriangulationError(
                 f"the camera images are {rows} x {cols} (rows x cols) but the rig's camera "
                 f"is {k.height} x {k.width}: the rig does not belong to this scan")
-        cam = rig.camera
+        intr, _, t_c = _tk.kernel_args(rig.camera)
         a = np.empty((rows, cols))
         b = np.empty((rows, cols))
-        n_bad = _grid_lines_kernel(float(k.u0), float(k.v0), float(k.du), float(k.dv),
-                                   float(k.k1), float(k.s1), float(k.s2), float(k.m),
-                                   float(cam.t_dev[0]), float(cam.t_dev[1]), a, b)
+        n_bad = _grid_lines_kernel(intr, t_c, a, b)
         if n_bad:
             # the model's own error message and checks
             v, u = np.mgrid[0:rows, 0:cols].astype(np.float64)
@@ -137,11 +139,14 @@ class Triangulator:
         u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64),
                                    np.asarray(v, dtype=np.float64))
         cam: TelecentricDevice = rig.camera
-        xd, yd = cam.pixel_to_sensor(u, v)
-        xu, yu = _undistort(xd, yd, *cam.intrinsics.distortion)
-        mc = cam.intrinsics.m
-        a = np.ascontiguousarray(xu / mc - cam.t_dev[0])
-        b = np.ascontiguousarray(yu / mc - cam.t_dev[1])
+        intr, _, t_c = _tk.kernel_args(cam)
+        a = np.empty(u.shape)
+        b = np.empty(u.shape)
+        n_bad = _tk.backproject_lines(np.ascontiguousarray(u).reshape(-1),
+                                      np.ascontiguousarray(v).reshape(-1), intr, t_c,
+                                      a.reshape(-1), b.reshape(-1))
+        if n_bad:
+            cam.backproject(u, v)  # raises the model's ConvergenceError, with its message
         return cls(rig, tuple(u.shape), _readonly(a), _readonly(b),
                    _readonly(_projector_coef(rig)))
 
@@ -234,7 +239,7 @@ class Triangulator:
         Rc = np.ascontiguousarray(self.rig.camera.R_dev_world)
         kp = np.array((u0, v0, du, dv, ki.k1, s1, s2, W, H, coef[0, 0], coef[0, 1], Bu,
                        coef[1, 0], coef[1, 1], Bv, t_p[0], t_p[1], 1.0 / du, 1.0 / dv,
-                       _unfolded_radius2(ki.k1, s1, s2)), dtype=np.float64)
+                       unfolded_radius2(ki.k1, s1, s2)), dtype=np.float64)
         max_res = np.inf if max_residual is None else float(max_residual)
         max_sz = np.inf if max_sigma_z is None else float(max_sigma_z)
         a_f, b_f = self.a.reshape(n), self.b.reshape(n)
@@ -376,15 +381,9 @@ def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, co
               & (vp_pred <= kp[8] - 0.5))
     # a solution where the projector's distortion is folded is not the inverse (as in
     # telefringe.geometry.distortion.undistort_sensor): count it as not converged
-    k1 = kp[4]
-    xu = Au + kp[11] * s
-    yu = Av + kp[14] * s
-    q = xu * xu + yu * yu
-    fa = 1.0 + k1 * (q + 2.0 * xu * xu) + 2.0 * kp[5] * xu
-    fb = 2.0 * k1 * xu * yu + 2.0 * kp[5] * yu
-    fc = 2.0 * k1 * xu * yu + 2.0 * kp[6] * xu
-    fd = 1.0 + k1 * (q + 2.0 * yu * yu) + 2.0 * kp[6] * yu
-    converged = converged & (fa * fd - fb * fc > 0.0) & (fa + fd > 0.0)
+    fa, fb, fc, fd = distortion_jacobian(Au + kp[11] * s, Av + kp[14] * s, kp[4], kp[5],
+                                         kp[6])
+    converged = converged & is_unfolded(fa, fb, fc, fd)
     f = (FLAG_INCONSISTENT * (r > max_res) + FLAG_OUTSIDE * (1 - inside)
          + FLAG_NOT_CONVERGED * (1 - converged) + FLAG_UNCERTAIN * (sg * abs(Rc[8]) > max_sz))
     f = f if valid else FLAG_NO_PHASE
@@ -392,9 +391,10 @@ def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, co
     good = f == 0
     ok[i] = good
     sig[i] = sg if good else np.nan
-    x[i] = (ai * Rc[0] + bi * Rc[3] + s * Rc[6]) if good else np.nan
-    y[i] = (ai * Rc[1] + bi * Rc[4] + s * Rc[7]) if good else np.nan
-    z[i] = (ai * Rc[2] + bi * Rc[5] + s * Rc[8]) if good else np.nan
+    px, py, pz = _tk.line_point(ai, bi, s, Rc)
+    x[i] = px if good else np.nan
+    y[i] = py if good else np.nan
+    z[i] = pz if good else np.nan
 
 
 @njit(cache=True, inline="always")
@@ -403,8 +403,7 @@ def _invariants(kp, Rc):  # pragma: no cover - numba
     # from arrays, they would be reloaded every pixel: the stores could alias them)
     return ((kp[0], kp[1], kp[2], kp[3], kp[4], kp[5], kp[6], kp[7], kp[8], kp[9], kp[10],
              kp[11], kp[12], kp[13], kp[14], kp[15], kp[16], kp[17], kp[18]),
-            (Rc[0, 0], Rc[0, 1], Rc[0, 2], Rc[1, 0], Rc[1, 1], Rc[1, 2], Rc[2, 0], Rc[2, 1],
-             Rc[2, 2]))
+            _tk.flat_rotation(Rc))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -475,10 +474,8 @@ def _solve_u_block(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
     q2 = Bu * Bu + Bv * Bv
     # loop invariants in locals: the stores below could alias kp and Rc for all the
     # compiler knows, which would reload them every pixel
-    r00, r01, r02 = Rc[0, 0], Rc[0, 1], Rc[0, 2]
-    r10, r11, r12 = Rc[1, 0], Rc[1, 1], Rc[1, 2]
-    r20, r21, r22 = Rc[2, 0], Rc[2, 1], Rc[2, 2]
-    d22 = abs(r22)
+    R9 = _tk.flat_rotation(Rc)
+    d22 = abs(R9[8])
     n_slow = 0
     for i in range(a.shape[0]):
         ai = a[i]
@@ -510,11 +507,10 @@ def _solve_u_block(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
         xu = Au + Bu * s
         yu = Av + Bv * s
         q = xu * xu + yu * yu
-        up_pred = u0 + (xu + (k1 * xu + s1) * q) * idu
-        vp_pred = v0 + (yu + (k1 * yu + s2) * q) * idv
+        up_pred, vp_pred = _tk.pixel_of_sensor(xu, yu, u0, v0, idu, idv, k1, s1, s2)
         inside = ((up_pred >= -0.5) & (up_pred <= W - 0.5) & (vp_pred >= -0.5)
                   & (vp_pred <= H - 0.5))
-        # the fold check: true within the radius of _unfolded_radius2; beyond it (never,
+        # the fold check: true within the radius of unfolded_radius2; beyond it (never,
         # for a real projector) the slow pass solves the pixel again with the full check
         converged = converged & (q <= r2_unfolded)
         fl = (FLAG_OUTSIDE * (1 - inside) + FLAG_NOT_CONVERGED * (1 - converged)
@@ -525,9 +521,10 @@ def _solve_u_block(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
         good = fl == 0
         ok[i] = good
         sig[i] = sg if good else np.nan
-        x[i] = (ai * r00 + bi * r10 + s * r20) if good else np.nan
-        y[i] = (ai * r01 + bi * r11 + s * r21) if good else np.nan
-        z[i] = (ai * r02 + bi * r12 + s * r22) if good else np.nan
+        px, py, pz = _tk.line_point(ai, bi, s, R9)
+        x[i] = px if good else np.nan
+        y[i] = py if good else np.nan
+        z[i] = pz if good else np.nan
     return n_slow
 
 
@@ -571,60 +568,6 @@ def _solve_slow(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max
                 Rc, max_res, max_sz, x, y, z, sig, res, flags, ok)
 
 
-def _undistort(xd, yd, k1, s1, s2):
-    """:func:`telefringe.geometry.distortion.undistort_sensor` (same Newton iteration, tolerance and
-    error), compiled and parallel: the per-rig set-up of a full image in milliseconds."""
-    xd = np.ascontiguousarray(xd, dtype=np.float64)
-    yd = np.ascontiguousarray(yd, dtype=np.float64)
-    if k1 == 0.0 and s1 == 0.0 and s2 == 0.0:
-        return xd.copy(), yd.copy()
-    xu = np.empty_like(xd)
-    yu = np.empty_like(yd)
-    worst = np.zeros(1)
-    n_bad = _undistort_kernel(xd.reshape(-1), yd.reshape(-1), float(k1), float(s1), float(s2),
-                              xu.reshape(-1), yu.reshape(-1), worst)
-    if n_bad:
-        # the model's own error message and checks
-        return undistort_sensor(xd, yd, k1, s1, s2)
-    return xu, yu
-
-
-@njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _undistort_kernel(xd, yd, k1, s1, s2, xu_out, yu_out,
-                      worst):  # pragma: no cover - numba
-    n_bad = 0
-    for i in prange(xd.shape[0]):
-        x0 = xd[i]
-        y0 = yd[i]
-        xu = x0
-        yu = y0
-        if np.isfinite(x0) and np.isfinite(y0):
-            xu, yu, ok = undistort_point(x0, y0, k1, s1, s2)
-            if not ok:
-                n_bad += 1
-        xu_out[i] = xu
-        yu_out[i] = yu
-    return n_bad
-
-
-def _unfolded_radius2(k1, s1, s2) -> float:
-    """Squared radius (undistorted sensor mm^2) within which the distortion cannot fold.
-
-    With r^2 = xu^2 + yu^2 and s = max(|s1|, |s2|), the Jacobian of the distortion has
-    diagonal terms >= 1 - 3|k1| r^2 - 2 s r and off-diagonal ones <= |k1| r^2 + 2 s r in
-    magnitude, so its determinant and trace are positive (the fold check of
-    :func:`telefringe.geometry.distortion.undistort_sensor` passes) while
-    4 |k1| r^2 + 4 s r < 1. The
-    radius returned is 0.99 of that bound's root (inf without distortion).
-    """
-    k = abs(float(k1))
-    s = max(abs(float(s1)), abs(float(s2)))
-    if k == 0.0 and s == 0.0:
-        return np.inf
-    r = 1.0 / (4.0 * s) if k == 0.0 else (np.sqrt(s * s + k) - s) / (2.0 * k)
-    return float((0.99 * r) ** 2)
-
-
 def _projector_coef(rig: Rig) -> np.ndarray:
     """(2, 3): the projector's undistorted sensor mm along a camera line, ``[xu_P, yu_P]
     = coef @ [a, b, s] + m_P t_P``."""
@@ -637,44 +580,33 @@ _N_UNDISTORT = 3
 
 
 @njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _grid_lines_kernel(u0, v0, du, dv, k1, s1, s2, m, t0, t1, a,
-                       b):  # pragma: no cover - numba
-    # Triangulator.for_pixels on the full pixel grid, fused (pixel -> distorted sensor mm
-    # -> undistorted -> line offsets a, b). The undistortion: from the first-order inverse,
-    # _N_UNDISTORT Newton steps with no data-dependent branch (the row vectorises), then
-    # the acceptance test of telefringe.geometry.distortion.undistort_sensor, tightened to
-    # its stopping tolerance; the pixels that fail it are redone with the iterating
-    # undistort_point.
+def _grid_lines_kernel(intr, t, a, b):  # pragma: no cover - numba
+    # Triangulator.for_pixels on the full pixel grid, the device model's back-projection
+    # fused per row: _N_UNDISTORT fixed Newton steps with no data-dependent branch (the row
+    # vectorises), then the pixels that fail its acceptance test are redone with the
+    # iterating inversion. Returns the number of pixels where that fails too.
+    m, du, dv, u0, v0, k1, s1, s2 = intr
+    t0 = t[0]
+    t1 = t[1]
     rows, cols = a.shape
     n_bad = 0
     for r in prange(rows):
-        yd = (r - v0) * dv
         redo = 0
         for c in range(cols):
-            xd = (c - u0) * du
-            r2 = xd * xd + yd * yd
-            xu = xd - (k1 * xd + s1) * r2
-            yu = yd - (k1 * yd + s2) * r2
-            for _ in range(_N_UNDISTORT):
-                fx, fy, ja, jb, jc, jd = distortion_residual(xu, yu, xd, yd, k1, s1, s2)
-                idet = 1.0 / (ja * jd - jb * jc)
-                xu = xu - (jd * fx - jb * fy) * idet
-                yu = yu - (ja * fy - jc * fx) * idet
-            fx, fy, ja, jb, jc, jd = distortion_residual(xu, yu, xd, yd, k1, s1, s2)
-            res = abs(fx) + abs(fy)
-            thresh = max(1e-12, 64.0 * 2.220446049250313e-16 * (abs(xd) + abs(yd)))
-            good = (res <= thresh) & (ja * jd - jb * jc > 0.0) & (ja + jd > 0.0)
+            ai, bi, good = _tk.backproject_point_fixed(float(c), float(r), m, u0, v0, du, dv,
+                                                       k1, s1, s2, t0, t1, _N_UNDISTORT)
             redo += not good
-            a[r, c] = (xu / m - t0) if good else np.nan
-            b[r, c] = yu / m - t1
+            a[r, c] = ai if good else np.nan
+            b[r, c] = bi
         if redo:
             for c in range(cols):
                 if np.isnan(a[r, c]):
-                    xu, yu, ok = undistort_point((c - u0) * du, yd, k1, s1, s2)
+                    ai, bi, ok = _tk.backproject_point(float(c), float(r), m, u0, v0, du, dv,
+                                                       k1, s1, s2, t0, t1)
                     if not ok:
                         n_bad += 1
-                    a[r, c] = xu / m - t0
-                    b[r, c] = yu / m - t1
+                    a[r, c] = ai
+                    b[r, c] = bi
     return n_bad
 
 
