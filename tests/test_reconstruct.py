@@ -478,6 +478,93 @@ def test_point_cloud_is_read_only_and_from_xyz():
         PointCloud.from_xyz(np.zeros((3, 4)))
 
 
+def test_point_cloud_copies_the_callers_arrays():
+    # the arrays given are never changed nor made read-only; the cloud's are read-only
+    rng = np.random.default_rng(2)
+    xyz = rng.normal(size=SHAPE + (3,))
+    mask = np.ones(SHAPE, bool)
+    sig = np.full(SHAPE, 0.002)
+    res = np.zeros(SHAPE)
+    flags = np.zeros(SHAPE, np.uint8)
+    d = np.array([0.0, 0.0, -1.0])
+    given = [xyz, mask, sig, res, flags, d]
+    before = [a.copy() for a in given]
+    cloud = PointCloud(*given)
+    for a, b in zip(given, before, strict=True):
+        assert a.flags.writeable
+        np.testing.assert_array_equal(a, b)
+    xyz[0, 0, 0] = 99.0  # the caller changes its array: the cloud does not change
+    assert cloud.xyz[0, 0, 0] == before[0][0, 0, 0]
+    for name in ("xyz", "mask", "sigma_line", "residual", "flags", "directions"):
+        assert not getattr(cloud, name).flags.writeable, name
+    xyz2 = before[0].copy()
+    c2 = PointCloud.from_xyz(xyz2, sigma_z=sig)
+    assert xyz2.flags.writeable and not c2.xyz.flags.writeable
+    np.testing.assert_array_equal(xyz2, before[0])
+    z = np.ones((4, 5), np.float32)
+    sz = np.full((4, 5), 0.001, np.float32)
+    hm = HeightMap(z, 0.0, 0.0, 0.1, sigma_z=sz)
+    assert z.flags.writeable and sz.flags.writeable
+    assert not hm.z.flags.writeable and not hm.sigma_z.flags.writeable
+    z[0, 0] = 5.0
+    assert hm.z[0, 0] == 1.0
+    with pytest.raises(TriangulationError, match="sigma_z"):
+        HeightMap(z, 0.0, 0.0, 0.1, sigma_z=sz[:, :-1])
+
+
+def test_point_cloud_per_pixel_directions():
+    # a cloud from a camera whose lines converge (each pixel its own direction): the
+    # uncertainties use each pixel's direction, and there is no common direction
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(size=SHAPE + (3,))
+    centre = np.array([0.0, 0.0, 100.0])
+    d = xyz - centre
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    sig = rng.uniform(0.001, 0.003, SHAPE)
+    cloud = PointCloud(xyz, np.ones(SHAPE, bool), sig, None, np.zeros(SHAPE, np.uint8), d)
+    np.testing.assert_allclose(cloud.sigma_xyz, sig[..., None] * np.abs(d), rtol=1e-15)
+    np.testing.assert_allclose(cloud.sigma_z, sig * np.abs(d[..., 2]), rtol=1e-15)
+    assert cloud.sigma_x.shape == cloud.sigma_y.shape == SHAPE
+    with pytest.raises(TriangulationError, match="differ from pixel to pixel"):
+        _ = cloud.direction
+    rays = cloud.rays
+    assert rays.shape == SHAPE
+    np.testing.assert_allclose(rays.point_at(np.zeros(SHAPE)), xyz)
+    # per-pixel directions that are all the same: that common direction
+    same = np.broadcast_to(d[0, 0], SHAPE + (3,))
+    c2 = PointCloud(xyz, np.ones(SHAPE, bool), sig, None, np.zeros(SHAPE, np.uint8), same)
+    np.testing.assert_array_equal(c2.direction, d[0, 0])
+    # from_xyz takes them too, and needs a z component at every pixel
+    c3 = PointCloud.from_xyz(xyz, sigma_z=sig, direction=d)
+    np.testing.assert_allclose(c3.sigma_z, sig, rtol=1e-14)
+    flat = d.copy()
+    flat[3, 4] = (1.0, 0.0, 0.0)
+    with pytest.raises(TriangulationError, match="z component"):
+        PointCloud.from_xyz(xyz, direction=flat)
+    # a triangulated telecentric cloud carries the camera's one direction
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    tc = triangulate(rig, Coords(up))
+    assert tc.directions.shape == (3,)
+    np.testing.assert_array_equal(tc.direction, rig.camera.axis_world)
+    np.testing.assert_array_equal(tc.rays.directions()[5, 6], rig.camera.axis_world)
+
+
+def test_point_cloud_checks_its_arrays():
+    xyz = np.zeros(SHAPE + (3,))
+    ok = np.ones(SHAPE, bool)
+    sig = np.zeros(SHAPE)
+    fl = np.zeros(SHAPE, np.uint8)
+    with pytest.raises(TriangulationError, match="mask"):
+        PointCloud(xyz, ok[:-1], sig, None, fl, (0.0, 0.0, 1.0))
+    with pytest.raises(TriangulationError, match="unit"):
+        PointCloud(xyz, ok, sig, None, fl, (0.0, 0.0, 2.0))
+    with pytest.raises(TriangulationError, match="directions must have shape"):
+        PointCloud(xyz, ok, sig, None, fl, np.zeros((2, 3)))
+    with pytest.raises(TriangulationError, match="xyz"):
+        PointCloud(xyz[..., :2], ok, sig, None, fl, (0.0, 0.0, 1.0))
+
+
 # --- height map ------------------------------------------------------------------------
 def plane_cloud(rig, coef=(0.05, -0.03, 0.2)):
     """Points where each camera line meets z = a x + b y + c."""

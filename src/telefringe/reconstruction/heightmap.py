@@ -27,6 +27,8 @@ class HeightMap:
         Grid spacing (mm), the same along x and y.
     sigma_z : (H, W) ndarray of float32 or None
         Standard uncertainty of ``z`` (mm), interpolated like ``z``.
+
+    ``z`` and ``sigma_z`` are read-only copies of the arrays given.
     """
 
     z: np.ndarray
@@ -36,8 +38,16 @@ class HeightMap:
     sigma_z: np.ndarray | None = None
 
     def __post_init__(self):
-        _readonly(self.z)
-        _readonly(self.sigma_z)
+        # read-only copies: the caller's arrays are never changed (nor made read-only)
+        z = np.array(self.z)
+        if z.ndim != 2:
+            raise TriangulationError(f"HeightMap.z must be a (H, W) array, got {z.shape}")
+        object.__setattr__(self, "z", _readonly(z))
+        if self.sigma_z is not None:
+            s = np.array(self.sigma_z)
+            if s.shape != z.shape:
+                raise TriangulationError(f"HeightMap.sigma_z has shape {s.shape}, z {z.shape}")
+            object.__setattr__(self, "sigma_z", _readonly(s))
 
     @property
     def x(self) -> np.ndarray:

@@ -261,9 +261,10 @@ class Triangulator:
                         flags, ok)
         shape = self.shape
         xyz = np.moveaxis(xyz_planar, 0, -1)
-        return PointCloud(xyz, ok.reshape(shape), sig.reshape(shape),
-                          None if res is None else res.reshape(shape), flags.reshape(shape),
-                          self.direction)
+        # the kernels' fresh arrays: the cloud adopts them without a copy
+        return PointCloud._adopt(xyz, ok.reshape(shape), sig.reshape(shape),
+                                 None if res is None else res.reshape(shape),
+                                 flags.reshape(shape), self.direction)
 
 
 # The per-pixel solve. Along a camera line the projector's undistorted sensor coordinates
@@ -386,12 +387,17 @@ def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, co
     converged = converged & is_unfolded(fa, fb, fc, fd)
     f = (FLAG_INCONSISTENT * (r > max_res) + FLAG_OUTSIDE * (1 - inside)
          + FLAG_NOT_CONVERGED * (1 - converged) + FLAG_UNCERTAIN * (sg * abs(Rc[8]) > max_sz))
-    f = f if valid else FLAG_NO_PHASE
+    _store(i, f if valid else FLAG_NO_PHASE, sg, ai, bi, s, Rc, x, y, z, sig, flags, ok)
+
+
+@njit(cache=True, inline="always")
+def _store(i, f, sg, ai, bi, s, R9, x, y, z, sig, flags, ok):  # pragma: no cover - numba
+    # one pixel's result: flags f, and where f == 0 its sigma and its point on the line
     flags[i] = f
     good = f == 0
     ok[i] = good
     sig[i] = sg if good else np.nan
-    px, py, pz = _tk.line_point(ai, bi, s, Rc)
+    px, py, pz = _tk.line_point(ai, bi, s, R9)
     x[i] = px if good else np.nan
     y[i] = py if good else np.nan
     z[i] = pz if good else np.nan
@@ -516,15 +522,8 @@ def _solve_u_block(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
         fl = (FLAG_OUTSIDE * (1 - inside) + FLAG_NOT_CONVERGED * (1 - converged)
               + FLAG_UNCERTAIN * (sg * d22 > max_sz))
         fl = fl if valid else FLAG_NO_PHASE
-        flags[i] = fl
         n_slow += (fl & FLAG_NOT_CONVERGED) != 0
-        good = fl == 0
-        ok[i] = good
-        sig[i] = sg if good else np.nan
-        px, py, pz = _tk.line_point(ai, bi, s, R9)
-        x[i] = px if good else np.nan
-        y[i] = py if good else np.nan
-        z[i] = pz if good else np.nan
+        _store(i, fl, sg, ai, bi, s, R9, x, y, z, sig, flags, ok)
     return n_slow
 
 
