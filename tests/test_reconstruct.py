@@ -565,6 +565,95 @@ def test_point_cloud_checks_its_arrays():
         PointCloud(xyz[..., :2], ok, sig, None, fl, (0.0, 0.0, 1.0))
 
 
+def _shifted(rig, k):
+    """The rig with its projector moved by k * 10 um: another rig (another cache key)."""
+    prj = rig.projector
+    return Rig(rig.camera, TelecentricDevice(prj.intrinsics, prj.R_dev_world,
+                                             prj.t_dev + np.array([1e-2 * k, 0.0])))
+
+
+def test_triangulator_cache_is_bounded_by_bytes():
+    from telefringe.reconstruction.telecentric import _TriangulatorCache
+
+    rig = make_rig()
+    one = Triangulator.for_shape(rig, SHAPE)
+    size = one.a.nbytes + one.b.nbytes + one.coef.nbytes
+    cache = _TriangulatorCache(int(2.5 * size))  # room for two
+    rigs = [_shifted(rig, k) for k in range(5)]
+    for r in rigs:
+        tri = cache.get(r, SHAPE)
+        assert tri.rig is r
+        assert cache.nbytes <= cache.max_bytes and len(cache) <= 2
+    assert len(cache) == 2 and cache.nbytes == 2 * size
+    # a hit returns the cached object; the least recently used goes first
+    t4 = cache.get(rigs[4], SHAPE)
+    t3 = cache.get(rigs[3], SHAPE)
+    assert cache.get(rigs[3], SHAPE) is t3 and cache.get(rigs[4], SHAPE) is t4
+    cache.get(rigs[3], SHAPE)
+    cache.get(rigs[0], SHAPE)  # evicts rigs[4], keeps rigs[3] (used last)
+    assert cache.get(rigs[3], SHAPE) is t3
+    assert cache.get(rigs[4], SHAPE) is not t4  # built again
+    # an entry larger than the budget is built and not kept
+    small = _TriangulatorCache(size - 1)
+    assert small.get(rig, SHAPE).rig is rig and len(small) == 0 and small.nbytes == 0
+    # the module's cache has a budget of a few full-size cameras, not a count
+    from telefringe.reconstruction import telecentric as tel
+
+    assert tel._TRIANGULATORS.max_bytes == tel.TRIANGULATOR_CACHE_BYTES <= 64 * 2**20
+
+
+def test_triangulator_cache_under_threads():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from telefringe.reconstruction.telecentric import _TriangulatorCache
+
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    one = Triangulator.for_shape(rig, SHAPE)
+    size = one.a.nbytes + one.b.nbytes + one.coef.nbytes
+    rigs = [_shifted(rig, k) for k in range(6)]
+    ref = [Triangulator.for_shape(r, SHAPE).triangulate(Coords(up)).xyz for r in rigs]
+    cache = _TriangulatorCache(int(3.5 * size))
+    seen = []
+
+    def work(i):
+        k = (7 * i) % len(rigs)
+        tri = cache.get(rigs[k], SHAPE)
+        seen.append(cache.nbytes)
+        return k, tri.rig is rigs[k], tri.triangulate(Coords(up)).xyz
+
+    with ThreadPoolExecutor(max_workers=8) as pool:
+        out = list(pool.map(work, range(200)))
+    for k, same_rig, xyz in out:
+        assert same_rig
+        np.testing.assert_array_equal(xyz, ref[k])
+    assert max(seen) <= cache.max_bytes and len(cache) <= 3
+    assert cache.nbytes == len(cache) * size
+
+
+def test_rig_or_an_object_holding_one():
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+
+    @dataclass(frozen=True)
+    class Holder:
+        rig: object
+
+    expect = triangulate(rig, Coords(up)).xyz
+    np.testing.assert_array_equal(triangulate(Holder(rig), Coords(up)).xyz, expect)
+
+    @dataclass(frozen=True)
+    class LooksLikeARig:  # duck typing is not taken
+        camera: object
+        projector: object
+
+    for bad in (LooksLikeARig(rig.camera, rig.projector), Holder(rig.camera), rig.camera):
+        with pytest.raises(TriangulationError, match="expected a telefringe.devices.rig.Rig"):
+            triangulate(bad, Coords(up))
+        with pytest.raises(TriangulationError, match="expected"):
+            Triangulator.for_shape(bad, SHAPE)
+
+
 # --- height map ------------------------------------------------------------------------
 def plane_cloud(rig, coef=(0.05, -0.03, 0.2)):
     """Points where each camera line meets z = a x + b y + c."""

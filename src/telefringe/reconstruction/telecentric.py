@@ -43,7 +43,8 @@ the covariance of a point is ``sigma_s^2 d d^T`` and ``sigma_xyz = |d| sigma_s``
 
 from __future__ import annotations
 
-import functools
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,7 +70,7 @@ from telefringe.reconstruction.cloud import (
     _readonly,
 )
 
-__all__ = ["Triangulator", "triangulate", "triangulate_pixels"]
+__all__ = ["Triangulator", "triangulate", "triangulate_pixels", "TRIANGULATOR_CACHE_BYTES"]
 
 _TOL_S = 1e-12  # mm, convergence of the line parameter
 _MAX_ITER = 30
@@ -609,9 +610,69 @@ def _grid_lines_kernel(intr, t, a, b):  # pragma: no cover - numba
     return n_bad
 
 
-@functools.lru_cache(maxsize=4)
-def _cached_triangulator(rig: Rig, shape: tuple) -> Triangulator:
-    return Triangulator.for_shape(rig, shape)
+#: Bytes the per-process cache of :class:`Triangulator` may hold (its a, b planes: 21 MB
+#: for a 1280 x 1024 camera). A triangulator larger than this is built and not kept.
+TRIANGULATOR_CACHE_BYTES = 64 * 2**20
+
+
+class _TriangulatorCache:
+    """(rig, shape) -> Triangulator, the least recently used dropped first, holding at most
+    ``max_bytes``; safe to share between threads.
+
+    Keyed by the rig's identity (a Rig is immutable); the entry holds its rig, so the id
+    of a cached rig cannot be reused. A miss builds outside the lock (the compiled set-up
+    releases the GIL), so two threads may build the same entry once each: one is kept.
+    """
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = int(max_bytes)
+        self._lock = threading.Lock()
+        self._items: OrderedDict[tuple, Triangulator] = OrderedDict()
+        self._bytes = 0
+
+    @staticmethod
+    def _size(tri: Triangulator) -> int:
+        return int(tri.a.nbytes + tri.b.nbytes + tri.coef.nbytes)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held now."""
+        with self._lock:
+            return self._bytes
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._items)
+
+    def get(self, rig: Rig, shape: tuple) -> Triangulator:
+        key = (id(rig), tuple(shape))
+        with self._lock:
+            tri = self._items.get(key)
+            if tri is not None and tri.rig is rig:
+                self._items.move_to_end(key)
+                return tri
+        tri = Triangulator.for_shape(rig, shape)
+        size = self._size(tri)
+        if size > self.max_bytes:
+            return tri
+        with self._lock:
+            old = self._items.pop(key, None)
+            if old is not None:
+                self._bytes -= self._size(old)
+            self._items[key] = tri
+            self._bytes += size
+            while self._bytes > self.max_bytes:
+                _, dropped = self._items.popitem(last=False)
+                self._bytes -= self._size(dropped)
+        return tri
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+            self._bytes = 0
+
+
+_TRIANGULATORS = _TriangulatorCache(TRIANGULATOR_CACHE_BYTES)
 
 
 def triangulate(rig: Rig, coords, *, max_residual: float | None = 1.0,
@@ -653,8 +714,9 @@ def triangulate(rig: Rig, coords, *, max_residual: float | None = 1.0,
 
     Notes
     -----
-    The rig's per-pixel precomputation (:class:`Triangulator`) is cached for the last
-    few (rig, shape) pairs, so repeated calls with the same rig are fast.
+    The rig's per-pixel precomputation (:class:`Triangulator`) is cached per process for
+    the most recently used (rig, shape) pairs, within ``TRIANGULATOR_CACHE_BYTES``
+    (thread-safe), so repeated calls with the same rig are fast.
     """
     up = getattr(coords, "u_p", None)
     if up is None:
@@ -664,7 +726,7 @@ def triangulate(rig: Rig, coords, *, max_residual: float | None = 1.0,
     shape = tuple(int(n) for n in np.shape(up))
     if len(shape) != 2:
         raise TriangulationError(f"u_p must be a (rows, cols) array, got shape {shape}")
-    tri = _cached_triangulator(_as_rig(rig), shape)
+    tri = _TRIANGULATORS.get(_as_rig(rig), shape)
     return tri.triangulate(coords, max_residual=max_residual, max_sigma_z=max_sigma_z,
                            use_v_p=use_v_p, check_bounds=check_bounds)
 
