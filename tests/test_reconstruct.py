@@ -653,6 +653,12 @@ def test_rig_or_an_object_holding_one():
         with pytest.raises(TriangulationError, match="expected"):
             Triangulator.for_shape(bad, SHAPE)
 
+    class Pinhole:  # another device model: not for this triangulator, and it says so
+        model = "pinhole"
+
+    with pytest.raises(TriangulationError, match="telecentric projector.*'pinhole'"):
+        triangulate(Rig(rig.camera, Pinhole()), Coords(up))
+
 
 # --- height map ------------------------------------------------------------------------
 def plane_cloud(rig, coef=(0.05, -0.03, 0.2)):

@@ -76,6 +76,19 @@ _TOL_S = 1e-12  # mm, convergence of the line parameter
 _MAX_ITER = 30
 
 
+def _telecentric_rig(rig) -> Rig:
+    """The Rig of ``rig`` (see :func:`~telefringe.reconstruction._rig.as_rig`), checked to
+    be a telecentric camera and projector: the only model this fast path is for."""
+    rig = _as_rig(rig)
+    for role in ("camera", "projector"):
+        dev = getattr(rig, role)
+        if not isinstance(dev, TelecentricDevice):
+            raise TriangulationError(
+                f"the telecentric triangulator needs a telecentric {role}, the rig's is "
+                f"{getattr(dev, 'model', type(dev).__name__)!r}")
+    return rig
+
+
 # --------------------------------------------------------------------------------------
 # The per-rig precomputation
 # --------------------------------------------------------------------------------------
@@ -113,7 +126,7 @@ class Triangulator:
         Raises :class:`TriangulationError` when ``shape`` does not match the camera's
         declared image size (when it declares one).
         """
-        rig = _as_rig(rig)
+        rig = _telecentric_rig(rig)
         rows, cols = (int(n) for n in shape)
         if rows <= 0 or cols <= 0:
             raise TriangulationError(f"shape must be positive (rows, cols), got {shape}")
@@ -136,7 +149,7 @@ class Triangulator:
     @classmethod
     def for_pixels(cls, rig: Rig, u, v) -> Triangulator:
         """Triangulator for camera pixels at (u, v) (any shape, observed/distorted px)."""
-        rig = _as_rig(rig)
+        rig = _telecentric_rig(rig)
         u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64),
                                    np.asarray(v, dtype=np.float64))
         cam: TelecentricDevice = rig.camera
