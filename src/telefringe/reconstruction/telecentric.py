@@ -371,6 +371,18 @@ def _observe(i, up, vp, su, sv, mask, combine, kp):  # pragma: no cover - numba
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def _set_up(i, a, b, up, vp, su, sv, mask, combine, kp):  # pragma: no cover - numba
+    # pixel i's observations, its line's cubics and the linear start (both passes)
+    u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv = _observe(
+        i, up, vp, su, sv, mask, combine, kp)
+    ai = a[i]
+    bi = b[i]
+    c = _line_cubics(ai, bi, kp)
+    s = _start(c, xd_obs, yd_obs, wu, wv, combine)
+    return u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv, ai, bi, c, s
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, combine, kp,
             Rc, max_res, max_sz, x, y, z, sig, res, flags, ok):  # pragma: no cover - numba
     cu0, cu1, cu2, cu3, cv0, cv1, cv2, cv3, Au, Av = c
@@ -432,12 +444,8 @@ def _solve_block(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, ma
     # fixed steps, no data-dependent branches: LLVM vectorises this loop
     kp, Rc = _invariants(kp, Rc)
     for i in range(a.shape[0]):
-        u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv = _observe(
-            i, up, vp, su, sv, mask, combine, kp)
-        ai = a[i]
-        bi = b[i]
-        c = _line_cubics(ai, bi, kp)
-        s = _start(c, xd_obs, yd_obs, wu, wv, combine)
+        u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv, ai, bi, c, s = _set_up(
+            i, a, b, up, vp, su, sv, mask, combine, kp)
         est = 0.0
         for _ in range(_N_FAST):
             s, est = _newton_step(s, c, xd_obs, yd_obs, wu, wv, combine)
@@ -563,12 +571,8 @@ def _solve_slow(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max
     for i in range(a.shape[0]):
         if not (flags[i] & FLAG_NOT_CONVERGED):
             continue
-        u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv = _observe(
-            i, up, vp, su, sv, mask, combine, kp)
-        ai = a[i]
-        bi = b[i]
-        c = _line_cubics(ai, bi, kp)
-        s = _start(c, xd_obs, yd_obs, wu, wv, combine)
+        u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv, ai, bi, c, s = _set_up(
+            i, a, b, up, vp, su, sv, mask, combine, kp)
         converged = False
         for _ in range(_MAX_ITER):
             s, est = _newton_step(s, c, xd_obs, yd_obs, wu, wv, combine)
