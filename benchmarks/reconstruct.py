@@ -85,7 +85,8 @@ import telefringe.cli
 from telefringe.io.rig_json import load_rig
 from telefringe.io.scan_json import read_scan
 from telefringe.fringes.decode import decode
-from telefringe.reconstruction.reconstruct import triangulate, height_map
+from telefringe.reconstruction.telecentric import triangulate
+from telefringe.reconstruction.heightmap import height_map
 from telefringe.io.figures.heightmap_png import write_height_png
 from telefringe.io.ply import write_ply
 from telefringe.io.points_npz import write_points
@@ -146,7 +147,8 @@ def main() -> None:
     from telefringe.io.reconstruction_folder import preview_map as _preview
     from telefringe.io.scan_json import read_scan, write_scan
     from telefringe.io.tiff import write_height_tiff
-    from telefringe.reconstruction.reconstruct import Triangulator, height_map, triangulate
+    from telefringe.reconstruction.heightmap import height_map
+    from telefringe.reconstruction.telecentric import Triangulator, triangulate
     from telefringe.simulate.presets import get_preset
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import make_scene

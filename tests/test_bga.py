@@ -15,7 +15,7 @@ from telefringe.metrology import (
     measure_bga,
     seating_plane_coplanarity,
 )
-from telefringe.reconstruction.reconstruct import PointCloud
+from telefringe.reconstruction.cloud import PointCloud
 
 
 # --- BGA --------------------------------------------------------------------------------

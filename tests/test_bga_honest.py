@@ -22,7 +22,7 @@ from telefringe.metrology import (
     SphereFit,
     measure_bga,
 )
-from telefringe.reconstruction.reconstruct import PointCloud
+from telefringe.reconstruction.cloud import PointCloud
 
 NOM = BGANominal(rows=6, cols=7, pitch_mm=0.8, ball_diameter_mm=0.45)
 TRUE_MISSING = {(2, 3), (0, 0)}

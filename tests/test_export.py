@@ -17,7 +17,8 @@ from telefringe.io.points_npz import load_points, read_points, write_points
 from telefringe.io.reconstruction_folder import write_reconstruction
 from telefringe.io.tiff import read_height_tiff, write_height_tiff
 from telefringe.metrology import BGANominal, fit_plane, measure_bga
-from telefringe.reconstruction.reconstruct import PointCloud, height_map
+from telefringe.reconstruction.cloud import PointCloud
+from telefringe.reconstruction.heightmap import height_map
 
 PNG_SIG = b"\x89PNG\r\n\x1a\n"
 
@@ -85,6 +86,35 @@ def test_read_points_refuses_bad_files(tmp_path):
         read_points(tmp_path / "bad3.npz")
 
 
+def test_points_versions_and_per_pixel_directions(tmp_path):
+    """Version 2 keeps one direction or one per pixel; a version-1 file (one 'direction',
+    as written before version 2) still loads to the same cloud."""
+    cloud = small_cloud()
+    p = write_points(tmp_path / "p.npz", cloud)
+    with np.load(p) as z:
+        arrays = {k: z[k] for k in z.files}
+    assert int(arrays["version"]) == 2 and arrays["directions"].shape == (3,)
+    v1 = {k: v for k, v in arrays.items() if k != "directions"}
+    v1.update(version=np.array(1), direction=arrays["directions"])
+    np.savez(tmp_path / "v1.npz", **v1)
+    old, _ = read_points(tmp_path / "v1.npz")
+    assert np.array_equal(old.xyz, cloud.xyz, equal_nan=True)
+    np.testing.assert_array_equal(old.direction, cloud.direction)
+    # a cloud whose pixels look along different directions (a pinhole camera)
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=cloud.shape + (3,)) + [0.0, 0.0, -5.0]
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    fan = PointCloud(cloud.xyz, cloud.mask, cloud.sigma_line, None, cloud.flags, d)
+    write_points(tmp_path / "fan.npz", fan)
+    back, _ = read_points(tmp_path / "fan.npz")
+    np.testing.assert_allclose(back.directions, d, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(back.sigma_z, fan.sigma_z, rtol=1e-15)
+    for bad_d in (np.array([0.0, 0.0, 2.0]), np.zeros((2, 2, 3)), np.full(3, np.nan)):
+        np.savez(tmp_path / "bad.npz", **dict(arrays, directions=bad_d))
+        with pytest.raises(InputError, match="directions"):
+            read_points(tmp_path / "bad.npz")
+
+
 def test_ply_binary_readable(tmp_path):
     from plyfile import PlyData
 
@@ -139,7 +169,7 @@ def test_previews_are_png(tmp_path):
     p = write_height_png(tmp_path / "h.png", hm, title="test")
     assert p.read_bytes()[:8] == PNG_SIG
     # an all-NaN map still renders
-    from telefringe.reconstruction.reconstruct import HeightMap
+    from telefringe.reconstruction.heightmap import HeightMap
 
     p = write_height_png(tmp_path / "nan.png", HeightMap(np.full((4, 5), np.nan, np.float32),
                                                          0.0, 0.0, 0.1))
@@ -164,7 +194,7 @@ def test_write_reconstruction(tmp_path):
 
 def test_preview_map_is_the_least_binning_that_fits_the_preview():
     from telefringe.io.reconstruction_folder import PREVIEW_PIXELS, preview_map
-    from telefringe.reconstruction.reconstruct import HeightMap
+    from telefringe.reconstruction.heightmap import HeightMap
 
     assert PREVIEW_PIXELS == 800
     big = HeightMap(np.zeros((900, 1700)), 0.0, 0.0, 0.01)
@@ -221,7 +251,7 @@ def test_height_preview_colours_follow_the_colour_bar(tmp_path):
     import cv2
 
     from telefringe.io.figures.heightmap_png import height_colours
-    from telefringe.reconstruction.reconstruct import HeightMap
+    from telefringe.reconstruction.heightmap import HeightMap
 
     z = np.tile(np.linspace(-1.0, 1.0, 200), (100, 1))  # rising left to right, mm
     z[:10, :10] = np.nan
@@ -241,7 +271,7 @@ def test_height_preview_colours_follow_the_colour_bar(tmp_path):
     assert tuple(height_colours(np.array([lo - 1, hi + 1]), lo, hi)[1]) == (253, 231, 37)
     code = ("import sys, numpy as np\n"
             "from telefringe.io.figures.heightmap_png import write_height_png\n"
-            "from telefringe.reconstruction.reconstruct import HeightMap\n"
+            "from telefringe.reconstruction.heightmap import HeightMap\n"
             f"write_height_png({str(tmp_path / 'x.png')!r}, HeightMap(np.zeros((4, 5)), 0, 0, 1))\n"
             "assert 'matplotlib' not in sys.modules\n")
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -14,7 +14,7 @@ from telefringe.metrology import (
     fit_plane,
     plane_distance,
 )
-from telefringe.reconstruction.reconstruct import PointCloud
+from telefringe.reconstruction.cloud import PointCloud
 
 
 def camera_grid(shape, *, pixel=0.0325, origin=(0.0, 0.0), angle_deg=0.0):

@@ -9,20 +9,18 @@ import pytest
 
 from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
+from telefringe.geometry.distortion import ConvergenceError
 from telefringe.geometry.so3 import rotation_from_rotvec
-from telefringe.reconstruction.reconstruct import (
+from telefringe.reconstruction.cloud import (
     FLAG_INCONSISTENT,
     FLAG_NO_PHASE,
     FLAG_OUTSIDE,
     FLAG_UNCERTAIN,
-    HeightMap,
     PointCloud,
     TriangulationError,
-    Triangulator,
-    height_map,
-    triangulate,
-    triangulate_pixels,
 )
+from telefringe.reconstruction.heightmap import HeightMap, height_map
+from telefringe.reconstruction.telecentric import Triangulator, triangulate, triangulate_pixels
 
 SHAPE = (96, 128)
 
@@ -71,21 +69,76 @@ def surface_points(rig, shape=SHAPE, *, seed=0, depth=2.0):
     return X, up, vp
 
 
-def test_compiled_undistortion_matches_the_model():
-    from telefringe.geometry.distortion import ConvergenceError, undistort_sensor
-    from telefringe.reconstruction.reconstruct import _undistort
+def _device(k, *, m=0.8, seed=7):
+    rng = np.random.default_rng(seed)
+    return TelecentricDevice(
+        Intrinsics(m=m, du=0.0052, dv=0.0047, u0=640.3, v0=511.8, k1=k[0], s1=k[1], s2=k[2],
+                   width=1280, height=1024),
+        rotation_from_rotvec(rng.normal(0, 1, 3)), rng.normal(0, 2, 2))
 
+
+@pytest.mark.parametrize("k", [(2e-3, 2e-4, -1e-4), (0.0, 0.0, 0.0), (-5e-3, 0.0, 1e-3)])
+def test_compiled_device_model_matches_the_numpy_model(k):
+    # the kernels' telecentric model (devices/_telecentric_kernels) against
+    # TelecentricDevice, to rounding: 2x the measured worst of these three cases, 5.7e-13
+    # px for the projection (the kernels multiply by 1 / pitch where the NumPy model
+    # divides) and 1.8e-15 mm for the back-projection (the same Newton iteration)
+    from telefringe.devices import _telecentric_kernels as tk
+
+    dev = _device(k)
     rng = np.random.default_rng(5)
-    xd, yd = rng.uniform(-3, 3, (2, 1000))
-    for k in [(2e-3, 2e-4, -1e-4), (0.0, 0.0, 0.0), (-5e-3, 0.0, 1e-3)]:
-        a = _undistort(xd, yd, *k)
-        b = undistort_sensor(xd, yd, *k)
-        assert np.max(np.abs(a[0] - b[0])) < 1e-13 and np.max(np.abs(a[1] - b[1])) < 1e-13
-    xd[3] = np.nan
-    assert np.isnan(_undistort(xd, yd, *k)[0][3])
-    # beyond the invertible range: the model's error
+    X = rng.uniform(-4, 4, (1000, 3))
+    u, v = tk.project_many(X, *tk.kernel_args(dev))
+    u_ref, v_ref = dev.project(X)
+    assert np.max(np.abs(u - u_ref)) < 1.2e-12 and np.max(np.abs(v - v_ref)) < 1.2e-12
+    u = rng.uniform(-0.5, 1279.5, 1000)
+    v = rng.uniform(-0.5, 1023.5, 1000)
+    u[3] = np.nan
+    intr, R, t_dev = tk.kernel_args(dev)
+    a, b = np.empty(1000), np.empty(1000)
+    assert tk.backproject_lines(u, v, intr, t_dev, a, b) == 0
+    origin, direction = dev.backproject(u, v)
+    mine = a[:, None] * R[0] + b[:, None] * R[1]
+    ok = np.isfinite(u)
+    assert np.max(np.abs(mine[ok] - origin[ok])) < 4e-15  # mm
+    assert np.isnan(a[3]) and np.all(np.isnan(origin[3]))
+    np.testing.assert_array_equal(direction, R[2])
+    # beyond the invertible range: counted by the kernel, raised by the model
+    strong = _device((-0.05, 0.0, 0.0))
+    a1, b1 = np.empty(1), np.empty(1)
+    intr, R, t_dev = tk.kernel_args(strong)
+    assert tk.backproject_lines(np.array([6000.0]), np.array([6000.0]), intr, t_dev, a1, b1) == 1
     with pytest.raises(ConvergenceError):
-        _undistort(np.array([30.0]), np.array([30.0]), -0.05, 0.0, 0.0)
+        strong.backproject(6000.0, 6000.0)
+    with pytest.raises(ConvergenceError):
+        Triangulator.for_pixels(Rig(strong, make_rig().projector), 6000.0, 6000.0)
+
+
+@pytest.mark.parametrize("k_p", [(3e-4, 5e-5, -8e-5), (2e-1, 3e-2, -3e-2)])
+def test_projector_cubics_are_the_device_model(k_p):
+    # the fast path's special form (the projector's distorted sensor coordinates as cubics
+    # in s along a camera line) against the device model's projection of the line's points
+    from telefringe.reconstruction import telecentric as tel
+
+    rig = make_rig(k1_p=k_p[0], s1_p=k_p[1], s2_p=k_p[2])
+    tri = Triangulator.for_shape(rig, SHAPE)
+    ki = rig.projector.intrinsics
+    coef = tri.coef
+    t_p = ki.m * rig.projector.t_dev
+    kp = np.zeros(20)
+    kp[4:7] = ki.k1, ki.s1, ki.s2
+    kp[9:15] = coef[0, 0], coef[0, 1], coef[0, 2], coef[1, 0], coef[1, 1], coef[1, 2]
+    kp[15:17] = t_p
+    rng = np.random.default_rng(8)
+    for i, j in ((0, 0), (40, 70), (95, 127)):
+        for s in rng.uniform(-6, 6, 4):
+            c = tel._line_cubics(tri.a[i, j], tri.b[i, j], kp)
+            xd = ((c[3] * s + c[2]) * s + c[1]) * s + c[0]
+            yd = ((c[7] * s + c[6]) * s + c[5]) * s + c[4]
+            u, v = rig.projector.project(tri.line_points(np.full(SHAPE, s))[i, j])
+            xd_ref, yd_ref = rig.projector.pixel_to_sensor(u, v)
+            # rounding: measured worst 5.6e-16 and 1.8e-15 mm for the two cases
+            assert abs(xd - xd_ref) < 4e-15 and abs(yd - yd_ref) < 4e-15
 
 
 @pytest.mark.parametrize("k_c", [(2e-3, 2e-4, -1e-4), (0.0, 0.0, 0.0), (1e-1, 1e-2, -1e-2)])
@@ -131,7 +184,7 @@ def test_exact_recovery_strong_distortion():
     # distortion strong enough that the fixed-step pass leaves pixels to the slow pass
     rig = make_rig(k1_p=2e-2, s1_p=3e-3, s2_p=-3e-3)
     X, up, vp = surface_points(rig, depth=6.0)
-    from telefringe.reconstruction import reconstruct as rec
+    from telefringe.reconstruction import telecentric as rec
 
     tri = Triangulator.for_shape(rig, SHAPE)
     calls = []
@@ -187,19 +240,19 @@ def test_u_only_kernel_matches_the_iterated_solution(k_p):
     assert np.max(np.abs(u_back - up[m])) < 1e-8
     # the strong distortion puts points beyond the radius where the kernel can skip the
     # fold check (they are solved again with it)
-    from telefringe.reconstruction.reconstruct import _unfolded_radius2
+    from telefringe.geometry._distortion_kernels import unfolded_radius2
 
     xu, yu = rig.projector.world_to_sensor(fast.xyz[m])
-    assert np.any(xu**2 + yu**2 > _unfolded_radius2(*k_p)) == (k_p[0] > 0.1)
+    assert np.any(xu**2 + yu**2 > unfolded_radius2(*k_p)) == (k_p[0] > 0.1)
 
 
 @pytest.mark.parametrize("k", [(7e-5, 1e-5, -2e-5), (-2e-2, 3e-3, -3e-3), (0.0, 0.0, 1e-2),
                                (-5e-1, 0.0, 0.0), (0.0, 0.0, 0.0)])
 def test_no_fold_within_the_unfolded_radius(k):
-    from telefringe.reconstruction.reconstruct import _unfolded_radius2
+    from telefringe.geometry._distortion_kernels import unfolded_radius2
 
     k1, s1, s2 = k
-    r2 = _unfolded_radius2(*k)
+    r2 = unfolded_radius2(*k)
     rng = np.random.default_rng(6)
     r = np.sqrt(min(r2, 1e4)) * np.sqrt(rng.uniform(0, 1, 20000))
     r[:100] = np.sqrt(min(r2, 1e4))  # the rim
@@ -425,6 +478,189 @@ def test_point_cloud_is_read_only_and_from_xyz():
         PointCloud.from_xyz(np.zeros((3, 4)))
 
 
+def test_point_cloud_copies_the_callers_arrays():
+    # the arrays given are never changed nor made read-only; the cloud's are read-only
+    rng = np.random.default_rng(2)
+    xyz = rng.normal(size=SHAPE + (3,))
+    mask = np.ones(SHAPE, bool)
+    sig = np.full(SHAPE, 0.002)
+    res = np.zeros(SHAPE)
+    flags = np.zeros(SHAPE, np.uint8)
+    d = np.array([0.0, 0.0, -1.0])
+    given = [xyz, mask, sig, res, flags, d]
+    before = [a.copy() for a in given]
+    cloud = PointCloud(*given)
+    for a, b in zip(given, before, strict=True):
+        assert a.flags.writeable
+        np.testing.assert_array_equal(a, b)
+    xyz[0, 0, 0] = 99.0  # the caller changes its array: the cloud does not change
+    assert cloud.xyz[0, 0, 0] == before[0][0, 0, 0]
+    for name in ("xyz", "mask", "sigma_line", "residual", "flags", "directions"):
+        assert not getattr(cloud, name).flags.writeable, name
+    xyz2 = before[0].copy()
+    c2 = PointCloud.from_xyz(xyz2, sigma_z=sig)
+    assert xyz2.flags.writeable and not c2.xyz.flags.writeable
+    np.testing.assert_array_equal(xyz2, before[0])
+    z = np.ones((4, 5), np.float32)
+    sz = np.full((4, 5), 0.001, np.float32)
+    hm = HeightMap(z, 0.0, 0.0, 0.1, sigma_z=sz)
+    assert z.flags.writeable and sz.flags.writeable
+    assert not hm.z.flags.writeable and not hm.sigma_z.flags.writeable
+    z[0, 0] = 5.0
+    assert hm.z[0, 0] == 1.0
+    with pytest.raises(TriangulationError, match="sigma_z"):
+        HeightMap(z, 0.0, 0.0, 0.1, sigma_z=sz[:, :-1])
+
+
+def test_point_cloud_per_pixel_directions():
+    # a cloud from a camera whose lines converge (each pixel its own direction): the
+    # uncertainties use each pixel's direction, and there is no common direction
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(size=SHAPE + (3,))
+    centre = np.array([0.0, 0.0, 100.0])
+    d = xyz - centre
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    sig = rng.uniform(0.001, 0.003, SHAPE)
+    cloud = PointCloud(xyz, np.ones(SHAPE, bool), sig, None, np.zeros(SHAPE, np.uint8), d)
+    np.testing.assert_allclose(cloud.sigma_xyz, sig[..., None] * np.abs(d), rtol=1e-15)
+    np.testing.assert_allclose(cloud.sigma_z, sig * np.abs(d[..., 2]), rtol=1e-15)
+    assert cloud.sigma_x.shape == cloud.sigma_y.shape == SHAPE
+    with pytest.raises(TriangulationError, match="differ from pixel to pixel"):
+        _ = cloud.direction
+    rays = cloud.rays
+    assert rays.shape == SHAPE
+    np.testing.assert_allclose(rays.point_at(np.zeros(SHAPE)), xyz)
+    # per-pixel directions that are all the same: that common direction
+    same = np.broadcast_to(d[0, 0], SHAPE + (3,))
+    c2 = PointCloud(xyz, np.ones(SHAPE, bool), sig, None, np.zeros(SHAPE, np.uint8), same)
+    np.testing.assert_array_equal(c2.direction, d[0, 0])
+    # from_xyz takes them too, and needs a z component at every pixel
+    c3 = PointCloud.from_xyz(xyz, sigma_z=sig, direction=d)
+    np.testing.assert_allclose(c3.sigma_z, sig, rtol=1e-14)
+    flat = d.copy()
+    flat[3, 4] = (1.0, 0.0, 0.0)
+    with pytest.raises(TriangulationError, match="z component"):
+        PointCloud.from_xyz(xyz, direction=flat)
+    # a triangulated telecentric cloud carries the camera's one direction
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    tc = triangulate(rig, Coords(up))
+    assert tc.directions.shape == (3,)
+    np.testing.assert_array_equal(tc.direction, rig.camera.axis_world)
+    np.testing.assert_array_equal(tc.rays.directions()[5, 6], rig.camera.axis_world)
+
+
+def test_point_cloud_checks_its_arrays():
+    xyz = np.zeros(SHAPE + (3,))
+    ok = np.ones(SHAPE, bool)
+    sig = np.zeros(SHAPE)
+    fl = np.zeros(SHAPE, np.uint8)
+    with pytest.raises(TriangulationError, match="mask"):
+        PointCloud(xyz, ok[:-1], sig, None, fl, (0.0, 0.0, 1.0))
+    with pytest.raises(TriangulationError, match="unit"):
+        PointCloud(xyz, ok, sig, None, fl, (0.0, 0.0, 2.0))
+    with pytest.raises(TriangulationError, match="directions must have shape"):
+        PointCloud(xyz, ok, sig, None, fl, np.zeros((2, 3)))
+    with pytest.raises(TriangulationError, match="xyz"):
+        PointCloud(xyz[..., :2], ok, sig, None, fl, (0.0, 0.0, 1.0))
+
+
+def _shifted(rig, k):
+    """The rig with its projector moved by k * 10 um: another rig (another cache key)."""
+    prj = rig.projector
+    return Rig(rig.camera, TelecentricDevice(prj.intrinsics, prj.R_dev_world,
+                                             prj.t_dev + np.array([1e-2 * k, 0.0])))
+
+
+def test_triangulator_cache_is_bounded_by_bytes():
+    from telefringe.reconstruction.telecentric import _TriangulatorCache
+
+    rig = make_rig()
+    one = Triangulator.for_shape(rig, SHAPE)
+    size = one.a.nbytes + one.b.nbytes + one.coef.nbytes
+    cache = _TriangulatorCache(int(2.5 * size))  # room for two
+    rigs = [_shifted(rig, k) for k in range(5)]
+    for r in rigs:
+        tri = cache.get(r, SHAPE)
+        assert tri.rig is r
+        assert cache.nbytes <= cache.max_bytes and len(cache) <= 2
+    assert len(cache) == 2 and cache.nbytes == 2 * size
+    # a hit returns the cached object; the least recently used goes first
+    t4 = cache.get(rigs[4], SHAPE)
+    t3 = cache.get(rigs[3], SHAPE)
+    assert cache.get(rigs[3], SHAPE) is t3 and cache.get(rigs[4], SHAPE) is t4
+    cache.get(rigs[3], SHAPE)
+    cache.get(rigs[0], SHAPE)  # evicts rigs[4], keeps rigs[3] (used last)
+    assert cache.get(rigs[3], SHAPE) is t3
+    assert cache.get(rigs[4], SHAPE) is not t4  # built again
+    # an entry larger than the budget is built and not kept
+    small = _TriangulatorCache(size - 1)
+    assert small.get(rig, SHAPE).rig is rig and len(small) == 0 and small.nbytes == 0
+    # the module's cache has a budget of a few full-size cameras, not a count
+    from telefringe.reconstruction import telecentric as tel
+
+    assert tel._TRIANGULATORS.max_bytes == tel.TRIANGULATOR_CACHE_BYTES <= 64 * 2**20
+
+
+def test_triangulator_cache_under_threads():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from telefringe.reconstruction.telecentric import _TriangulatorCache
+
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+    one = Triangulator.for_shape(rig, SHAPE)
+    size = one.a.nbytes + one.b.nbytes + one.coef.nbytes
+    rigs = [_shifted(rig, k) for k in range(6)]
+    ref = [Triangulator.for_shape(r, SHAPE).triangulate(Coords(up)).xyz for r in rigs]
+    cache = _TriangulatorCache(int(3.5 * size))
+    seen = []
+
+    def work(i):
+        k = (7 * i) % len(rigs)
+        tri = cache.get(rigs[k], SHAPE)
+        seen.append(cache.nbytes)
+        return k, tri.rig is rigs[k], tri.triangulate(Coords(up)).xyz
+
+    with ThreadPoolExecutor(max_workers=8) as pool:
+        out = list(pool.map(work, range(200)))
+    for k, same_rig, xyz in out:
+        assert same_rig
+        np.testing.assert_array_equal(xyz, ref[k])
+    assert max(seen) <= cache.max_bytes and len(cache) <= 3
+    assert cache.nbytes == len(cache) * size
+
+
+def test_rig_or_an_object_holding_one():
+    rig = make_rig()
+    X, up, vp = surface_points(rig)
+
+    @dataclass(frozen=True)
+    class Holder:
+        rig: object
+
+    expect = triangulate(rig, Coords(up)).xyz
+    np.testing.assert_array_equal(triangulate(Holder(rig), Coords(up)).xyz, expect)
+
+    @dataclass(frozen=True)
+    class LooksLikeARig:  # duck typing is not taken
+        camera: object
+        projector: object
+
+    for bad in (LooksLikeARig(rig.camera, rig.projector), Holder(rig.camera), rig.camera):
+        with pytest.raises(TriangulationError, match="expected a telefringe.devices.rig.Rig"):
+            triangulate(bad, Coords(up))
+        with pytest.raises(TriangulationError, match="expected"):
+            Triangulator.for_shape(bad, SHAPE)
+
+    class Pinhole(TelecentricDevice):  # another device model: not for this triangulator,
+        model = "pinhole"               # and it says so
+
+    other = Pinhole(rig.projector.intrinsics, rig.projector.R_dev_world, rig.projector.t_dev)
+    with pytest.raises(TriangulationError, match="telecentric projector.*'pinhole'"):
+        triangulate(Rig(rig.camera, other), Coords(up))
+
+
 # --- height map ------------------------------------------------------------------------
 def plane_cloud(rig, coef=(0.05, -0.03, 0.2)):
     """Points where each camera line meets z = a x + b y + c."""
@@ -529,8 +765,8 @@ def test_binned_height_map():
 
 
 def test_scan_radiance_takes_the_longest_unsaturated_exposure():
+    from telefringe.fringes.images import scan_radiance
     from telefringe.fringes.scan import PhaseGroup, Scan, ScanManifest
-    from telefringe.reconstruction.reconstruct import scan_radiance
 
     # two groups at exposure 1 and one at 0.25; the true radiance (DN at exposure 1) is
     # 100 on the left half and 400 (saturating exposure 1) on the right

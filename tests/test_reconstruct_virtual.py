@@ -19,7 +19,7 @@ import telefringe.simulate.render as sim
 from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import TelecentricDevice
 from telefringe.fringes.decode import decode
-from telefringe.fringes.images import fringe_free_image
+from telefringe.fringes.images import fringe_free_image, scan_radiance
 from telefringe.metrology import (
     BGANominal,
     measure_bga,
@@ -27,7 +27,7 @@ from telefringe.metrology import (
     measure_sphere,
     measure_steps,
 )
-from telefringe.reconstruction.reconstruct import scan_radiance, triangulate
+from telefringe.reconstruction.telecentric import triangulate
 from telefringe.simulate import scenes
 from telefringe.simulate.presets import HDR_EXPOSURES, get_preset
 from telefringe.targets.circle_grid import detect_circle_grid

@@ -29,7 +29,8 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     from telefringe.io.errors import InputError
     from telefringe.io.reconstruction_folder import write_reconstruction
     from telefringe.io.reports import cloud_summary
-    from telefringe.reconstruction.reconstruct import TriangulationError, reconstruct_scan
+    from telefringe.reconstruction.cloud import TriangulationError
+    from telefringe.reconstruction.pipeline import reconstruct_scan
 
     output = Path(output)
     check_can_write(output, force=force)

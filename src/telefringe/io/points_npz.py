@@ -18,20 +18,24 @@ __all__ = ["POINTS_FORMAT", "POINTS_VERSION", "write_points", "read_points", "lo
            "PointsFile"]
 
 POINTS_FORMAT = "telefringe-points"
-POINTS_VERSION = 1
+#: Written now: 2 (``directions``, the viewing direction of every pixel, or one for all).
+#: Version 1 files (one ``direction`` (3,)) are read too.
+POINTS_VERSION = 2
+_READABLE = (1, 2)
 
 
 def write_points(path, cloud, *, texture=None, radiance=None, force: bool = False) -> Path:
-    """Write an organised point cloud to ``path`` (uncompressed .npz).
+    """Write an organised point cloud to ``path`` (uncompressed .npz, version 2).
 
     Arrays: ``xyz`` (rows, cols, 3) float64 mm, NaN where invalid; ``mask`` bool;
     ``sigma_z`` float64 mm; ``sigma_line`` float64 mm (along the camera line);
-    ``direction`` (3,) the camera's viewing direction; ``flags`` uint8 (why a point is
-    invalid, ``telefringe.reconstruct.FLAG_*``); ``residual`` float64 projector px (only
-    with both fringe axes); ``texture`` float32 (rows, cols) fringe-free camera image
-    (optional, for marker detection); ``radiance`` float32 (rows, cols) the decoder's
-    background per unit exposure (optional, for BGA highlights); ``format`` and
-    ``version``.
+    ``directions`` float64, (3,) the camera's viewing direction when every pixel shares
+    it (a telecentric camera) or (rows, cols, 3) one unit vector per pixel; ``flags``
+    uint8 (why a point is invalid, ``telefringe.reconstruction.cloud.FLAG_*``);
+    ``residual`` float64 projector px (only with both fringe axes); ``texture`` float32
+    (rows, cols) fringe-free camera image (optional, for marker detection); ``radiance``
+    float32 (rows, cols) the decoder's background per unit exposure (optional, for BGA
+    highlights); ``format`` and ``version``.
     """
     arrays = {
         "format": np.array(POINTS_FORMAT),
@@ -40,7 +44,7 @@ def write_points(path, cloud, *, texture=None, radiance=None, force: bool = Fals
         "mask": np.asarray(cloud.mask, dtype=bool),
         "sigma_z": np.asarray(cloud.sigma_z, dtype=np.float64),
         "sigma_line": np.asarray(cloud.sigma_line, dtype=np.float64),
-        "direction": np.asarray(cloud.direction, dtype=np.float64),
+        "directions": np.asarray(cloud.directions, dtype=np.float64),
         "flags": np.asarray(cloud.flags, dtype=np.uint8),
     }
     if cloud.residual is not None:
@@ -71,7 +75,7 @@ def read_points(path):
 
     Returns
     -------
-    cloud : telefringe.reconstruct.PointCloud
+    cloud : telefringe.reconstruction.cloud.PointCloud
     texture : (rows, cols) float32 ndarray or None
 
     Raises
@@ -85,7 +89,7 @@ def read_points(path):
 
 def load_points(path) -> PointsFile:
     """Like :func:`read_points`, with every optional array (:class:`PointsFile`)."""
-    from telefringe.reconstruction.reconstruct import PointCloud
+    from telefringe.reconstruction.cloud import PointCloud
 
     path = Path(path)
     if path.is_dir():
@@ -93,10 +97,13 @@ def load_points(path) -> PointsFile:
     arrays = _npz.load(path, "points", missing_hint=" (run 'telefringe reconstruct' first)")
     if str(arrays.get("format", "")) != POINTS_FORMAT:
         raise InputError(f"{path}: not a telefringe points file (no format '{POINTS_FORMAT}')")
-    if int(arrays.get("version", -1)) != POINTS_VERSION:
+    version = int(arrays.get("version", -1))
+    if version not in _READABLE:
         raise InputError(f"{path}: points file version {arrays.get('version')} is not "
-                         f"supported (this telefringe reads version {POINTS_VERSION})")
-    for k in ("xyz", "mask", "sigma_line", "direction", "flags"):
+                         f"supported (this telefringe reads versions "
+                         f"{', '.join(map(str, _READABLE))})")
+    dkey = "direction" if version == 1 else "directions"
+    for k in ("xyz", "mask", "sigma_line", dkey, "flags"):
         if k not in arrays:
             raise InputError(f"{path}: array '{k}' is missing")
     xyz = arrays["xyz"]
@@ -106,9 +113,12 @@ def load_points(path) -> PointsFile:
     for k in ("mask", "sigma_line", "flags", "residual", "texture", "radiance"):
         if k in arrays and arrays[k].shape != shape:
             raise InputError(f"{path}: '{k}' has shape {arrays[k].shape}, expected {shape}")
-    d = np.asarray(arrays["direction"], dtype=np.float64)
-    if d.shape != (3,) or not np.all(np.isfinite(d)) or abs(np.linalg.norm(d) - 1) > 1e-6:
-        raise InputError(f"{path}: 'direction' must be a unit 3-vector")
+    d = np.asarray(arrays[dkey], dtype=np.float64)
+    if d.shape not in ((3,), shape + (3,)) or not np.all(np.isfinite(d)) or np.any(
+            np.abs(np.linalg.norm(d, axis=-1) - 1) > 1e-6):
+        what = "a unit 3-vector" if version == 1 else f"unit vectors, (3,) or {shape + (3,)}"
+        raise InputError(f"{path}: '{dkey}' must be {what}")
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
     mask = arrays["mask"].astype(bool)
     if np.any(mask & ~np.all(np.isfinite(xyz), axis=2)):
         raise InputError(f"{path}: 'mask' marks points whose xyz is not finite")

@@ -36,7 +36,7 @@ def write_reconstruction(folder, cloud, hm=None, *, texture=None, radiance=None,
     Parameters
     ----------
     folder : path-like, an existing folder.
-    cloud : telefringe.reconstruction.reconstruct.PointCloud
+    cloud : telefringe.reconstruction.cloud.PointCloud
     hm : HeightMap or None; no height-map files without it.
     texture, radiance : (rows, cols) arrays or None, kept in points.npz (texture also
         colours the PLY).

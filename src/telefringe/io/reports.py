@@ -14,7 +14,7 @@ __all__ = ["cloud_summary", "plane_summary", "plate_summary", "sphere_summary",
 
 def cloud_summary(cloud) -> dict:
     """Counts and uncertainty figures of a point cloud."""
-    from telefringe.reconstruction.reconstruct import (
+    from telefringe.reconstruction.cloud import (
         FLAG_INCONSISTENT,
         FLAG_NO_PHASE,
         FLAG_NOT_CONVERGED,

@@ -64,7 +64,7 @@ def read_height_tiff(path):
     """Read a height map written by :func:`write_height_tiff` (HeightMap)."""
     import tifffile
 
-    from telefringe.reconstruction.reconstruct import HeightMap
+    from telefringe.reconstruction.heightmap import HeightMap
 
     path = Path(path)
     side = path.with_suffix(".json")

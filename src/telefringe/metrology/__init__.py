@@ -3,7 +3,7 @@
 Every fit returns a small frozen result with its uncertainty; degenerate input raises
 :class:`MetrologyError` (a ``ValueError``) with a message that says what is missing.
 Point arrays are (n, 3) in mm (world frame); organised clouds are
-:class:`telefringe.reconstruction.reconstruct.PointCloud` (one point per camera pixel,
+:class:`telefringe.reconstruction.cloud.PointCloud` (one point per camera pixel,
 NaN = invalid).
 
 Conventions

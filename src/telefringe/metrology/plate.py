@@ -9,7 +9,7 @@ import numpy as np
 
 from telefringe.metrology._common import _MAD, MetrologyError, _freeze, _poly_design
 from telefringe.metrology.planes import Plane, PlaneDistance, PlaneFit, fit_plane, plane_distance
-from telefringe.reconstruction.reconstruct import PointCloud
+from telefringe.reconstruction.cloud import PointCloud
 
 
 @dataclass(frozen=True, eq=False)

@@ -9,7 +9,7 @@ import numpy as np
 
 from telefringe.metrology._common import _MAD, MetrologyError, _components, _freeze
 from telefringe.metrology.planes import PlaneFit, _tls_plane, fit_plane
-from telefringe.reconstruction.reconstruct import PointCloud
+from telefringe.reconstruction.cloud import PointCloud
 
 
 @dataclass(frozen=True, eq=False)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from telefringe.metrology._common import _MAD, MetrologyError, _freeze, _tangent_basis
-from telefringe.reconstruction.reconstruct import PointCloud
+from telefringe.reconstruction.cloud import PointCloud
 
 
 @dataclass(frozen=True, eq=False)

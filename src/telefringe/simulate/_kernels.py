@@ -7,10 +7,10 @@ import math
 import numba
 import numpy as np
 
-from telefringe.geometry._distortion_kernels import undistort_point as _undistort_one
+from telefringe.devices import _telecentric_kernels as _tk
 
 __all__ = ["accumulate_samples", "heightfield_eval", "heightfield_intersect", "camera_rays",
-           "project_points", "shade", "interp_samples", "plate_intersect", "boxes_intersect",
+           "shade", "interp_samples", "plate_intersect", "boxes_intersect",
            "sphere_intersect", "bga_intersect", "plane_intersect", "hit_points",
            "accumulate_many", "sensor_counts"]
 
@@ -165,9 +165,10 @@ def heightfield_intersect(z, px, x0, y0, o, d):
 # --------------------------------------------------------------------------- devices
 @numba.njit(cache=True, nogil=True)
 def camera_rays(u, v, intr, R, t, start):
-    """Orthographic camera rays through pixels (u, v) (N,).
+    """Orthographic camera rays through pixels (u, v) (N,) (the telecentric device model's
+    back-projection, :mod:`telefringe.devices._telecentric_kernels`).
 
-    ``intr`` = (m, du, dv, u0, v0, k1, s1, s2); ``R`` (3, 3) R_dev_world; ``t`` (2,).
+    ``intr``, ``R``, ``t`` as :func:`~telefringe.devices._telecentric_kernels.kernel_args`.
     Returns origins (N, 3) placed ``start`` mm behind the zero-depth plane along the
     viewing direction ``R[2]``, and ok (N,) bool (undistortion converged).
     """
@@ -175,30 +176,12 @@ def camera_rays(u, v, intr, R, t, start):
     o = np.empty((n, 3))
     ok = np.empty(n, dtype=np.bool_)
     m, du, dv, u0, v0, k1, s1, s2 = intr
-    for i in numba.prange(n):
-        xu, yu, good = _undistort_one((u[i] - u0) * du, (v[i] - v0) * dv, k1, s1, s2)
-        ok[i] = good
-        a = xu / m - t[0]
-        b = yu / m - t[1]
-        for k in range(3):
-            o[i, k] = a * R[0, k] + b * R[1, k] - start * R[2, k]
+    R9 = _tk.flat_rotation(R)
+    for i in range(n):
+        a, b, ok[i] = _tk.backproject_point(u[i], v[i], m, u0, v0, du, dv, k1, s1, s2, t[0],
+                                            t[1])
+        o[i, 0], o[i, 1], o[i, 2] = _tk.line_point(a, b, -start, R9)
     return o, ok
-
-
-@numba.njit(cache=True, nogil=True)
-def project_points(P, intr, R, t):
-    """Project world points P (N, 3) with a device (same formula as TelecentricDevice.project)."""
-    n = P.shape[0]
-    up = np.empty(n)
-    vp = np.empty(n)
-    m, du, dv, u0, v0, k1, s1, s2 = intr
-    for i in numba.prange(n):
-        xu = m * (P[i, 0] * R[0, 0] + P[i, 1] * R[0, 1] + P[i, 2] * R[0, 2] + t[0])
-        yu = m * (P[i, 0] * R[1, 0] + P[i, 1] * R[1, 1] + P[i, 2] * R[1, 2] + t[1])
-        r2 = xu * xu + yu * yu
-        up[i] = u0 + (xu + k1 * xu * r2 + s1 * r2) / du
-        vp[i] = v0 + (yu + k1 * yu * r2 + s2 * r2) / dv
-    return up, vp
 
 
 @numba.njit(cache=True, nogil=True)

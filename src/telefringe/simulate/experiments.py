@@ -233,7 +233,7 @@ def run_calibration(vrig: VirtualRig, *, n_poses: int, seed: int = 0,
 def run_plate(vrig: VirtualRig, rig: Rig, position: float, *, seed: int = 0) -> PlateRow:
     """Scan the circle plate raised to Z = ``position`` mm and measure it (Table 3 row)."""
     from telefringe.metrology import measure_plate
-    from telefringe.reconstruction.reconstruct import reconstruct_scan
+    from telefringe.reconstruction.pipeline import reconstruct_scan
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import plate_at_z
     from telefringe.targets.circle_grid import detect_circle_grid
@@ -290,7 +290,7 @@ def run_bga(vrig: VirtualRig, rig: Rig, *, seed: int = 0, hdr: bool = True) -> B
         seating_plane_coplanarity,
     )
     from telefringe.metrology import Plane as _Plane
-    from telefringe.reconstruction.reconstruct import reconstruct_scan
+    from telefringe.reconstruction.pipeline import reconstruct_scan
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import default_bga
 

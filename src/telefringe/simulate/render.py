@@ -34,6 +34,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.special import ndtr
 
+from telefringe.devices import _telecentric_kernels as _tk
 from telefringe.fringes.patterns import pattern_stack
 from telefringe.fringes.scan import GrayGroup, PhaseGroup, Scan, ScanManifest
 from telefringe.geometry.distortion import ConvergenceError
@@ -262,13 +263,6 @@ def _sub_offsets(n: int) -> np.ndarray:
     return np.stack([du.ravel(), dv.ravel()], axis=1)
 
 
-def _device_args(dev):
-    k = dev.intrinsics
-    intr = (float(k.m), float(k.du), float(k.dv), float(k.u0), float(k.v0), float(k.k1),
-            float(k.s1), float(k.s2))
-    return intr, np.ascontiguousarray(dev.R_dev_world), np.ascontiguousarray(dev.t_dev)
-
-
 def _trace(vrig: VirtualRig, scene, u: np.ndarray, v: np.ndarray) -> dict:
     """Trace camera rays through pixels (u, v) (N,) into the scene and shade them.
 
@@ -279,7 +273,7 @@ def _trace(vrig: VirtualRig, scene, u: np.ndarray, v: np.ndarray) -> dict:
     """
     cam, proj = vrig.camera, vrig.projector
     ph = vrig.photometry
-    intr_c, R_c, t_c = _device_args(cam)
+    intr_c, R_c, t_c = _tk.kernel_args(cam)
     o, ok = _k.camera_rays(np.ascontiguousarray(u, dtype=float),
                            np.ascontiguousarray(v, dtype=float), intr_c, R_c, t_c,
                            _RAY_START_MM)
@@ -292,8 +286,7 @@ def _trace(vrig: VirtualRig, scene, u: np.ndarray, v: np.ndarray) -> dict:
     d_proj = np.ascontiguousarray(proj.axis_world)
     to_proj = -d_proj
     P, shadow_origin = _k.hit_points(o, d_cam, hits.t, hits.normal, to_proj, _RAY_START_MM)
-    intr_p, R_p, t_p = _device_args(proj)
-    up, vp = _k.project_points(P, intr_p, R_p, t_p)
+    up, vp = _tk.project_many(P, *_tk.kernel_args(proj))
     # rays from the projector side toward each facing point: lit if nothing comes first
     unshadowed = scene.intersect(shadow_origin, d_proj).t >= _RAY_START_MM - _SHADOW_EPS_MM
     h_vec = to_proj - d_cam

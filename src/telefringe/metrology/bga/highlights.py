@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from telefringe.metrology._common import MetrologyError, _poly_design, _tangent_basis
-from telefringe.reconstruction.reconstruct import PointCloud
+from telefringe.reconstruction.cloud import PointCloud
 
 
 def _gauss_spots(wins: np.ndarray, u0: float, v0: float, *, max_iter: int = 60):

@@ -15,7 +15,7 @@ from telefringe.metrology.bga.nominal import BGANominal
 from telefringe.metrology.bga.psf import _brightness_gradient_terms, _fit_caps_smoothed
 from telefringe.metrology.bga.result import BGAMeasurement
 from telefringe.metrology.bga.segment import cap_candidates, segment
-from telefringe.reconstruction.reconstruct import PointCloud
+from telefringe.reconstruction.cloud import PointCloud
 
 CAP_MODELS = ("psf", "free", "fixed")
 
@@ -142,7 +142,7 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
     image : (rows, cols) array_like, optional
         An unsaturated image of the scene in the camera's pixels (e.g. the HDR radiance
         of the decoder's background,
-        :attr:`telefringe.reconstruction.reconstruct.Reconstruction.radiance`). When
+        :attr:`telefringe.reconstruction.pipeline.Reconstruction.radiance`). When
         given, each ball's position on the substrate comes from its specular highlight
         (Gaussian fit, ~0.01 px), offset by the median (highlight - cap centre) of all
         balls: with a telecentric camera and projector every ball shows its highlight at

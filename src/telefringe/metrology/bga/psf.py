@@ -11,7 +11,7 @@ import numpy as np
 from telefringe.metrology._common import MetrologyError
 from telefringe.metrology.bga.caps import CapFit
 from telefringe.metrology.spheres import fit_sphere
-from telefringe.reconstruction.reconstruct import PointCloud
+from telefringe.reconstruction.cloud import PointCloud
 
 
 class PSFSolveWarning(RuntimeWarning):

@@ -9,7 +9,7 @@ import numpy as np
 
 from telefringe.metrology._common import MetrologyError, _components
 from telefringe.metrology.planes import PlaneFit, fit_plane
-from telefringe.reconstruction.reconstruct import PointCloud
+from telefringe.reconstruction.cloud import PointCloud
 
 
 class Segmentation(NamedTuple):

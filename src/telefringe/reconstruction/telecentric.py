@@ -43,176 +43,50 @@ the covariance of a point is ``sigma_s^2 d d^T`` and ``sigma_xyz = |d| sigma_s``
 
 from __future__ import annotations
 
-import functools
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
 
+from telefringe.devices import _telecentric_kernels as _tk
 from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import TelecentricDevice
-from telefringe.geometry._distortion_kernels import distortion_residual, undistort_point
-from telefringe.geometry.distortion import undistort_sensor
+from telefringe.geometry._distortion_kernels import (
+    distortion_jacobian,
+    is_unfolded,
+    unfolded_radius2,
+)
+from telefringe.reconstruction._rig import as_rig as _as_rig
+from telefringe.reconstruction.cloud import (
+    FLAG_INCONSISTENT,
+    FLAG_NO_PHASE,
+    FLAG_NOT_CONVERGED,
+    FLAG_OUTSIDE,
+    FLAG_UNCERTAIN,
+    PointCloud,
+    TriangulationError,
+    _readonly,
+)
 
-__all__ = [
-    "TriangulationError",
-    "PointCloud",
-    "Triangulator",
-    "HeightMap",
-    "triangulate",
-    "triangulate_pixels",
-    "height_map",
-    "Reconstruction",
-    "reconstruct_scan",
-    "radiance_image",
-    "scan_radiance",
-    "FLAG_NO_PHASE",
-    "FLAG_INCONSISTENT",
-    "FLAG_OUTSIDE",
-    "FLAG_NOT_CONVERGED",
-    "FLAG_UNCERTAIN",
-]
-
-#: ``PointCloud.flags`` bits (0 = valid point).
-FLAG_NO_PHASE = 1  #: the decoder's mask is false, or u_P (or a needed v_P) is not finite
-FLAG_INCONSISTENT = 2  #: |observed - predicted| projector pixel above ``max_residual``
-FLAG_OUTSIDE = 4  #: the solution falls outside the projector's image
-FLAG_NOT_CONVERGED = 8  #: the per-pixel solve did not converge
-FLAG_UNCERTAIN = 16  #: sigma_z above ``max_sigma_z``
+__all__ = ["Triangulator", "triangulate", "triangulate_pixels", "TRIANGULATOR_CACHE_BYTES"]
 
 _TOL_S = 1e-12  # mm, convergence of the line parameter
 _MAX_ITER = 30
 
 
-class TriangulationError(ValueError):
-    """The rig or the coordinates cannot be triangulated (degenerate geometry, shapes)."""
-
-
-def _as_rig(rig) -> Rig:
-    """A Rig from a Rig or anything holding one as ``.rig`` (e.g. the RigCalibration
-    that ``telefringe.io.rig.load_rig`` returns)."""
-    if isinstance(rig, Rig):
-        return rig
-    inner = getattr(rig, "rig", None)
-    if isinstance(inner, Rig):
-        return inner
-    raise TriangulationError(f"expected a telefringe.devices.rig.Rig, got {type(rig).__name__}")
-
-
-def _readonly(a):
-    if a is not None:
-        a.setflags(write=False)
-    return a
-
-
-@dataclass(frozen=True, eq=False)
-class PointCloud:
-    """An organised point cloud: one point per camera pixel.
-
-    Attributes
-    ----------
-    xyz : (rows, cols, 3) ndarray of float64
-        World coordinates in mm; NaN where ``mask`` is false.
-    mask : (rows, cols) ndarray of bool
-        True for valid points.
-    sigma_line : (rows, cols) ndarray of float64
-        Standard uncertainty (mm) of the point along its camera line, from the decoder's
-        ``sigma_u_p`` (and ``sigma_v_p``); NaN where invalid or where the decoder gave no
-        uncertainty. The covariance of a point is ``sigma_line**2 * outer(direction,
-        direction)``: the errors of X, Y and Z are fully correlated (see ``sigma_xyz``,
-        ``sigma_z``).
-    residual : (rows, cols) ndarray of float64 or None
-        Distance (projector px) between the observed and the predicted projector pixel
-        when both fringe axes were used; None with u fringes only.
-    flags : (rows, cols) ndarray of uint8
-        Why a point is invalid (bit set of ``FLAG_*``; 0 for valid points).
-    direction : (3,) ndarray of float64
-        The camera's unit viewing direction in the world frame.
-    """
-
-    xyz: np.ndarray
-    mask: np.ndarray
-    sigma_line: np.ndarray
-    residual: np.ndarray | None
-    flags: np.ndarray
-    direction: np.ndarray
-
-    def __post_init__(self):
-        for name in ("xyz", "mask", "sigma_line", "residual", "flags", "direction"):
-            _readonly(getattr(self, name))
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """(rows, cols) of the camera grid."""
-        return self.mask.shape
-
-    @property
-    def x(self) -> np.ndarray:
-        return self.xyz[..., 0]
-
-    @property
-    def y(self) -> np.ndarray:
-        return self.xyz[..., 1]
-
-    @property
-    def z(self) -> np.ndarray:
-        return self.xyz[..., 2]
-
-    @property
-    def sigma_xyz(self) -> np.ndarray:
-        """(rows, cols, 3) standard uncertainties of X, Y, Z (mm), NaN where invalid."""
-        return self.sigma_line[..., None] * np.abs(self.direction)
-
-    @property
-    def sigma_x(self) -> np.ndarray:
-        """(rows, cols) standard uncertainty of X (mm)."""
-        return self.sigma_line * abs(self.direction[0])
-
-    @property
-    def sigma_y(self) -> np.ndarray:
-        """(rows, cols) standard uncertainty of Y (mm)."""
-        return self.sigma_line * abs(self.direction[1])
-
-    @property
-    def sigma_z(self) -> np.ndarray:
-        """(rows, cols) standard uncertainty of Z (mm)."""
-        return self.sigma_line * abs(self.direction[2])
-
-    @property
-    def count(self) -> int:
-        """Number of valid points."""
-        return int(np.count_nonzero(self.mask))
-
-    def points(self) -> np.ndarray:
-        """The valid points as an (n, 3) float64 array (mm), row-major pixel order."""
-        return self.xyz[self.mask]
-
-    @classmethod
-    def from_xyz(cls, xyz, *, sigma_z=None, direction=(0.0, 0.0, -1.0)) -> PointCloud:
-        """A cloud from an (rows, cols, 3) array (NaN = invalid), e.g. read from points.npz.
-
-        ``sigma_z`` (rows, cols), if given, is taken as the uncertainty along a camera
-        line of unit ``direction`` (default: straight down, -z).
-        """
-        xyz = np.array(xyz, dtype=np.float64)
-        if xyz.ndim != 3 or xyz.shape[2] != 3:
-            raise TriangulationError(f"xyz must have shape (rows, cols, 3), got {xyz.shape}")
-        d = np.asarray(direction, dtype=np.float64).reshape(3)
-        nd = float(np.linalg.norm(d))
-        if not np.isfinite(nd) or nd == 0 or abs(d[2]) < 1e-12 * nd:
-            raise TriangulationError("direction must be a finite vector with a z component")
-        d = d / nd
-        mask = np.all(np.isfinite(xyz), axis=2)
-        xyz[~mask] = np.nan
-        if sigma_z is None:
-            sigma_line = np.full(mask.shape, np.nan)
-        else:
-            sz = np.asarray(sigma_z, dtype=np.float64)
-            if sz.shape != mask.shape:
-                raise TriangulationError(f"sigma_z must have shape {mask.shape}, got {sz.shape}")
-            sigma_line = np.where(mask, sz / abs(d[2]), np.nan)
-        flags = np.where(mask, 0, FLAG_NO_PHASE).astype(np.uint8)
-        return cls(xyz, mask, sigma_line, None, flags, d)
+def _telecentric_rig(rig) -> Rig:
+    """The Rig of ``rig`` (see :func:`~telefringe.reconstruction._rig.as_rig`), checked to
+    be a telecentric camera and projector: the only model this fast path is for."""
+    rig = _as_rig(rig)
+    for role in ("camera", "projector"):
+        dev = getattr(rig, role)
+        if not isinstance(dev, TelecentricDevice) or dev.model != "telecentric":
+            raise TriangulationError(
+                f"the telecentric triangulator needs a telecentric {role}, the rig's is "
+                f"{getattr(dev, 'model', type(dev).__name__)!r}")
+    return rig
 
 
 # --------------------------------------------------------------------------------------
@@ -252,7 +126,7 @@ class Triangulator:
         Raises :class:`TriangulationError` when ``shape`` does not match the camera's
         declared image size (when it declares one).
         """
-        rig = _as_rig(rig)
+        rig = _telecentric_rig(rig)
         rows, cols = (int(n) for n in shape)
         if rows <= 0 or cols <= 0:
             raise TriangulationError(f"shape must be positive (rows, cols), got {shape}")
@@ -261,12 +135,10 @@ class Triangulator:
             raise TriangulationError(
                 f"the camera images are {rows} x {cols} (rows x cols) but the rig's camera "
                 f"is {k.height} x {k.width}: the rig does not belong to this scan")
-        cam = rig.camera
+        intr, _, t_c = _tk.kernel_args(rig.camera)
         a = np.empty((rows, cols))
         b = np.empty((rows, cols))
-        n_bad = _grid_lines_kernel(float(k.u0), float(k.v0), float(k.du), float(k.dv),
-                                   float(k.k1), float(k.s1), float(k.s2), float(k.m),
-                                   float(cam.t_dev[0]), float(cam.t_dev[1]), a, b)
+        n_bad = _grid_lines_kernel(intr, t_c, a, b)
         if n_bad:
             # the model's own error message and checks
             v, u = np.mgrid[0:rows, 0:cols].astype(np.float64)
@@ -277,15 +149,18 @@ class Triangulator:
     @classmethod
     def for_pixels(cls, rig: Rig, u, v) -> Triangulator:
         """Triangulator for camera pixels at (u, v) (any shape, observed/distorted px)."""
-        rig = _as_rig(rig)
+        rig = _telecentric_rig(rig)
         u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64),
                                    np.asarray(v, dtype=np.float64))
         cam: TelecentricDevice = rig.camera
-        xd, yd = cam.pixel_to_sensor(u, v)
-        xu, yu = _undistort(xd, yd, *cam.intrinsics.distortion)
-        mc = cam.intrinsics.m
-        a = np.ascontiguousarray(xu / mc - cam.t_dev[0])
-        b = np.ascontiguousarray(yu / mc - cam.t_dev[1])
+        intr, _, t_c = _tk.kernel_args(cam)
+        a = np.empty(u.shape)
+        b = np.empty(u.shape)
+        n_bad = _tk.backproject_lines(np.ascontiguousarray(u).reshape(-1),
+                                      np.ascontiguousarray(v).reshape(-1), intr, t_c,
+                                      a.reshape(-1), b.reshape(-1))
+        if n_bad:
+            cam.backproject(u, v)  # raises the model's ConvergenceError, with its message
         return cls(rig, tuple(u.shape), _readonly(a), _readonly(b),
                    _readonly(_projector_coef(rig)))
 
@@ -378,7 +253,7 @@ class Triangulator:
         Rc = np.ascontiguousarray(self.rig.camera.R_dev_world)
         kp = np.array((u0, v0, du, dv, ki.k1, s1, s2, W, H, coef[0, 0], coef[0, 1], Bu,
                        coef[1, 0], coef[1, 1], Bv, t_p[0], t_p[1], 1.0 / du, 1.0 / dv,
-                       _unfolded_radius2(ki.k1, s1, s2)), dtype=np.float64)
+                       unfolded_radius2(ki.k1, s1, s2)), dtype=np.float64)
         max_res = np.inf if max_residual is None else float(max_residual)
         max_sz = np.inf if max_sigma_z is None else float(max_sigma_z)
         a_f, b_f = self.a.reshape(n), self.b.reshape(n)
@@ -400,9 +275,10 @@ class Triangulator:
                         flags, ok)
         shape = self.shape
         xyz = np.moveaxis(xyz_planar, 0, -1)
-        return PointCloud(xyz, ok.reshape(shape), sig.reshape(shape),
-                          None if res is None else res.reshape(shape), flags.reshape(shape),
-                          self.direction)
+        # the kernels' fresh arrays: the cloud adopts them without a copy
+        return PointCloud._adopt(xyz, ok.reshape(shape), sig.reshape(shape),
+                                 None if res is None else res.reshape(shape),
+                                 flags.reshape(shape), self.direction)
 
 
 # The per-pixel solve. Along a camera line the projector's undistorted sensor coordinates
@@ -495,6 +371,18 @@ def _observe(i, up, vp, su, sv, mask, combine, kp):  # pragma: no cover - numba
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def _set_up(i, a, b, up, vp, su, sv, mask, combine, kp):  # pragma: no cover - numba
+    # pixel i's observations, its line's cubics and the linear start (both passes)
+    u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv = _observe(
+        i, up, vp, su, sv, mask, combine, kp)
+    ai = a[i]
+    bi = b[i]
+    c = _line_cubics(ai, bi, kp)
+    s = _start(c, xd_obs, yd_obs, wu, wv, combine)
+    return u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv, ai, bi, c, s
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, combine, kp,
             Rc, max_res, max_sz, x, y, z, sig, res, flags, ok):  # pragma: no cover - numba
     cu0, cu1, cu2, cu3, cv0, cv1, cv2, cv3, Au, Av = c
@@ -520,25 +408,25 @@ def _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, co
               & (vp_pred <= kp[8] - 0.5))
     # a solution where the projector's distortion is folded is not the inverse (as in
     # telefringe.geometry.distortion.undistort_sensor): count it as not converged
-    k1 = kp[4]
-    xu = Au + kp[11] * s
-    yu = Av + kp[14] * s
-    q = xu * xu + yu * yu
-    fa = 1.0 + k1 * (q + 2.0 * xu * xu) + 2.0 * kp[5] * xu
-    fb = 2.0 * k1 * xu * yu + 2.0 * kp[5] * yu
-    fc = 2.0 * k1 * xu * yu + 2.0 * kp[6] * xu
-    fd = 1.0 + k1 * (q + 2.0 * yu * yu) + 2.0 * kp[6] * yu
-    converged = converged & (fa * fd - fb * fc > 0.0) & (fa + fd > 0.0)
+    fa, fb, fc, fd = distortion_jacobian(Au + kp[11] * s, Av + kp[14] * s, kp[4], kp[5],
+                                         kp[6])
+    converged = converged & is_unfolded(fa, fb, fc, fd)
     f = (FLAG_INCONSISTENT * (r > max_res) + FLAG_OUTSIDE * (1 - inside)
          + FLAG_NOT_CONVERGED * (1 - converged) + FLAG_UNCERTAIN * (sg * abs(Rc[8]) > max_sz))
-    f = f if valid else FLAG_NO_PHASE
+    _store(i, f if valid else FLAG_NO_PHASE, sg, ai, bi, s, Rc, x, y, z, sig, flags, ok)
+
+
+@njit(cache=True, inline="always")
+def _store(i, f, sg, ai, bi, s, R9, x, y, z, sig, flags, ok):  # pragma: no cover - numba
+    # one pixel's result: flags f, and where f == 0 its sigma and its point on the line
     flags[i] = f
     good = f == 0
     ok[i] = good
     sig[i] = sg if good else np.nan
-    x[i] = (ai * Rc[0] + bi * Rc[3] + s * Rc[6]) if good else np.nan
-    y[i] = (ai * Rc[1] + bi * Rc[4] + s * Rc[7]) if good else np.nan
-    z[i] = (ai * Rc[2] + bi * Rc[5] + s * Rc[8]) if good else np.nan
+    px, py, pz = _tk.line_point(ai, bi, s, R9)
+    x[i] = px if good else np.nan
+    y[i] = py if good else np.nan
+    z[i] = pz if good else np.nan
 
 
 @njit(cache=True, inline="always")
@@ -547,8 +435,7 @@ def _invariants(kp, Rc):  # pragma: no cover - numba
     # from arrays, they would be reloaded every pixel: the stores could alias them)
     return ((kp[0], kp[1], kp[2], kp[3], kp[4], kp[5], kp[6], kp[7], kp[8], kp[9], kp[10],
              kp[11], kp[12], kp[13], kp[14], kp[15], kp[16], kp[17], kp[18]),
-            (Rc[0, 0], Rc[0, 1], Rc[0, 2], Rc[1, 0], Rc[1, 1], Rc[1, 2], Rc[2, 0], Rc[2, 1],
-             Rc[2, 2]))
+            _tk.flat_rotation(Rc))
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -557,12 +444,8 @@ def _solve_block(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, ma
     # fixed steps, no data-dependent branches: LLVM vectorises this loop
     kp, Rc = _invariants(kp, Rc)
     for i in range(a.shape[0]):
-        u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv = _observe(
-            i, up, vp, su, sv, mask, combine, kp)
-        ai = a[i]
-        bi = b[i]
-        c = _line_cubics(ai, bi, kp)
-        s = _start(c, xd_obs, yd_obs, wu, wv, combine)
+        u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv, ai, bi, c, s = _set_up(
+            i, a, b, up, vp, su, sv, mask, combine, kp)
         est = 0.0
         for _ in range(_N_FAST):
             s, est = _newton_step(s, c, xd_obs, yd_obs, wu, wv, combine)
@@ -619,10 +502,8 @@ def _solve_u_block(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
     q2 = Bu * Bu + Bv * Bv
     # loop invariants in locals: the stores below could alias kp and Rc for all the
     # compiler knows, which would reload them every pixel
-    r00, r01, r02 = Rc[0, 0], Rc[0, 1], Rc[0, 2]
-    r10, r11, r12 = Rc[1, 0], Rc[1, 1], Rc[1, 2]
-    r20, r21, r22 = Rc[2, 0], Rc[2, 1], Rc[2, 2]
-    d22 = abs(r22)
+    R9 = _tk.flat_rotation(Rc)
+    d22 = abs(R9[8])
     n_slow = 0
     for i in range(a.shape[0]):
         ai = a[i]
@@ -654,24 +535,17 @@ def _solve_u_block(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
         xu = Au + Bu * s
         yu = Av + Bv * s
         q = xu * xu + yu * yu
-        up_pred = u0 + (xu + (k1 * xu + s1) * q) * idu
-        vp_pred = v0 + (yu + (k1 * yu + s2) * q) * idv
+        up_pred, vp_pred = _tk.pixel_of_sensor(xu, yu, u0, v0, idu, idv, k1, s1, s2)
         inside = ((up_pred >= -0.5) & (up_pred <= W - 0.5) & (vp_pred >= -0.5)
                   & (vp_pred <= H - 0.5))
-        # the fold check: true within the radius of _unfolded_radius2; beyond it (never,
+        # the fold check: true within the radius of unfolded_radius2; beyond it (never,
         # for a real projector) the slow pass solves the pixel again with the full check
         converged = converged & (q <= r2_unfolded)
         fl = (FLAG_OUTSIDE * (1 - inside) + FLAG_NOT_CONVERGED * (1 - converged)
               + FLAG_UNCERTAIN * (sg * d22 > max_sz))
         fl = fl if valid else FLAG_NO_PHASE
-        flags[i] = fl
         n_slow += (fl & FLAG_NOT_CONVERGED) != 0
-        good = fl == 0
-        ok[i] = good
-        sig[i] = sg if good else np.nan
-        x[i] = (ai * r00 + bi * r10 + s * r20) if good else np.nan
-        y[i] = (ai * r01 + bi * r11 + s * r21) if good else np.nan
-        z[i] = (ai * r02 + bi * r12 + s * r22) if good else np.nan
+        _store(i, fl, sg, ai, bi, s, R9, x, y, z, sig, flags, ok)
     return n_slow
 
 
@@ -697,12 +571,8 @@ def _solve_slow(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max
     for i in range(a.shape[0]):
         if not (flags[i] & FLAG_NOT_CONVERGED):
             continue
-        u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv = _observe(
-            i, up, vp, su, sv, mask, combine, kp)
-        ai = a[i]
-        bi = b[i]
-        c = _line_cubics(ai, bi, kp)
-        s = _start(c, xd_obs, yd_obs, wu, wv, combine)
+        u_obs, v_obs, valid, xd_obs, yd_obs, s_u, s_v, wu, wv, ai, bi, c, s = _set_up(
+            i, a, b, up, vp, su, sv, mask, combine, kp)
         converged = False
         for _ in range(_MAX_ITER):
             s, est = _newton_step(s, c, xd_obs, yd_obs, wu, wv, combine)
@@ -713,60 +583,6 @@ def _solve_slow(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max
                 break
         _finish(i, s, valid, converged, ai, bi, u_obs, v_obs, s_u, s_v, c, has_v, combine, kp,
                 Rc, max_res, max_sz, x, y, z, sig, res, flags, ok)
-
-
-def _undistort(xd, yd, k1, s1, s2):
-    """:func:`telefringe.geometry.distortion.undistort_sensor` (same Newton iteration, tolerance and
-    error), compiled and parallel: the per-rig set-up of a full image in milliseconds."""
-    xd = np.ascontiguousarray(xd, dtype=np.float64)
-    yd = np.ascontiguousarray(yd, dtype=np.float64)
-    if k1 == 0.0 and s1 == 0.0 and s2 == 0.0:
-        return xd.copy(), yd.copy()
-    xu = np.empty_like(xd)
-    yu = np.empty_like(yd)
-    worst = np.zeros(1)
-    n_bad = _undistort_kernel(xd.reshape(-1), yd.reshape(-1), float(k1), float(s1), float(s2),
-                              xu.reshape(-1), yu.reshape(-1), worst)
-    if n_bad:
-        # the model's own error message and checks
-        return undistort_sensor(xd, yd, k1, s1, s2)
-    return xu, yu
-
-
-@njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _undistort_kernel(xd, yd, k1, s1, s2, xu_out, yu_out,
-                      worst):  # pragma: no cover - numba
-    n_bad = 0
-    for i in prange(xd.shape[0]):
-        x0 = xd[i]
-        y0 = yd[i]
-        xu = x0
-        yu = y0
-        if np.isfinite(x0) and np.isfinite(y0):
-            xu, yu, ok = undistort_point(x0, y0, k1, s1, s2)
-            if not ok:
-                n_bad += 1
-        xu_out[i] = xu
-        yu_out[i] = yu
-    return n_bad
-
-
-def _unfolded_radius2(k1, s1, s2) -> float:
-    """Squared radius (undistorted sensor mm^2) within which the distortion cannot fold.
-
-    With r^2 = xu^2 + yu^2 and s = max(|s1|, |s2|), the Jacobian of the distortion has
-    diagonal terms >= 1 - 3|k1| r^2 - 2 s r and off-diagonal ones <= |k1| r^2 + 2 s r in
-    magnitude, so its determinant and trace are positive (the fold check of
-    :func:`telefringe.geometry.distortion.undistort_sensor` passes) while
-    4 |k1| r^2 + 4 s r < 1. The
-    radius returned is 0.99 of that bound's root (inf without distortion).
-    """
-    k = abs(float(k1))
-    s = max(abs(float(s1)), abs(float(s2)))
-    if k == 0.0 and s == 0.0:
-        return np.inf
-    r = 1.0 / (4.0 * s) if k == 0.0 else (np.sqrt(s * s + k) - s) / (2.0 * k)
-    return float((0.99 * r) ** 2)
 
 
 def _projector_coef(rig: Rig) -> np.ndarray:
@@ -781,50 +597,99 @@ _N_UNDISTORT = 3
 
 
 @njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _grid_lines_kernel(u0, v0, du, dv, k1, s1, s2, m, t0, t1, a,
-                       b):  # pragma: no cover - numba
-    # Triangulator.for_pixels on the full pixel grid, fused (pixel -> distorted sensor mm
-    # -> undistorted -> line offsets a, b). The undistortion: from the first-order inverse,
-    # _N_UNDISTORT Newton steps with no data-dependent branch (the row vectorises), then
-    # the acceptance test of telefringe.geometry.distortion.undistort_sensor, tightened to
-    # its stopping tolerance; the pixels that fail it are redone with the iterating
-    # undistort_point.
+def _grid_lines_kernel(intr, t, a, b):  # pragma: no cover - numba
+    # Triangulator.for_pixels on the full pixel grid, the device model's back-projection
+    # fused per row: _N_UNDISTORT fixed Newton steps with no data-dependent branch (the row
+    # vectorises), then the pixels that fail its acceptance test are redone with the
+    # iterating inversion. Returns the number of pixels where that fails too.
+    m, du, dv, u0, v0, k1, s1, s2 = intr
+    t0 = t[0]
+    t1 = t[1]
     rows, cols = a.shape
     n_bad = 0
     for r in prange(rows):
-        yd = (r - v0) * dv
         redo = 0
         for c in range(cols):
-            xd = (c - u0) * du
-            r2 = xd * xd + yd * yd
-            xu = xd - (k1 * xd + s1) * r2
-            yu = yd - (k1 * yd + s2) * r2
-            for _ in range(_N_UNDISTORT):
-                fx, fy, ja, jb, jc, jd = distortion_residual(xu, yu, xd, yd, k1, s1, s2)
-                idet = 1.0 / (ja * jd - jb * jc)
-                xu = xu - (jd * fx - jb * fy) * idet
-                yu = yu - (ja * fy - jc * fx) * idet
-            fx, fy, ja, jb, jc, jd = distortion_residual(xu, yu, xd, yd, k1, s1, s2)
-            res = abs(fx) + abs(fy)
-            thresh = max(1e-12, 64.0 * 2.220446049250313e-16 * (abs(xd) + abs(yd)))
-            good = (res <= thresh) & (ja * jd - jb * jc > 0.0) & (ja + jd > 0.0)
+            ai, bi, good = _tk.backproject_point_fixed(float(c), float(r), m, u0, v0, du, dv,
+                                                       k1, s1, s2, t0, t1, _N_UNDISTORT)
             redo += not good
-            a[r, c] = (xu / m - t0) if good else np.nan
-            b[r, c] = yu / m - t1
+            a[r, c] = ai if good else np.nan
+            b[r, c] = bi
         if redo:
             for c in range(cols):
                 if np.isnan(a[r, c]):
-                    xu, yu, ok = undistort_point((c - u0) * du, yd, k1, s1, s2)
+                    ai, bi, ok = _tk.backproject_point(float(c), float(r), m, u0, v0, du, dv,
+                                                       k1, s1, s2, t0, t1)
                     if not ok:
                         n_bad += 1
-                    a[r, c] = xu / m - t0
-                    b[r, c] = yu / m - t1
+                    a[r, c] = ai
+                    b[r, c] = bi
     return n_bad
 
 
-@functools.lru_cache(maxsize=4)
-def _cached_triangulator(rig: Rig, shape: tuple) -> Triangulator:
-    return Triangulator.for_shape(rig, shape)
+#: Bytes the per-process cache of :class:`Triangulator` may hold (its a, b planes: 21 MB
+#: for a 1280 x 1024 camera). A triangulator larger than this is built and not kept.
+TRIANGULATOR_CACHE_BYTES = 64 * 2**20
+
+
+class _TriangulatorCache:
+    """(rig, shape) -> Triangulator, the least recently used dropped first, holding at most
+    ``max_bytes``; safe to share between threads.
+
+    Keyed by the rig's identity (a Rig is immutable); the entry holds its rig, so the id
+    of a cached rig cannot be reused. A miss builds outside the lock (the compiled set-up
+    releases the GIL), so two threads may build the same entry once each: one is kept.
+    """
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = int(max_bytes)
+        self._lock = threading.Lock()
+        self._items: OrderedDict[tuple, Triangulator] = OrderedDict()
+        self._bytes = 0
+
+    @staticmethod
+    def _size(tri: Triangulator) -> int:
+        return int(tri.a.nbytes + tri.b.nbytes + tri.coef.nbytes)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held now."""
+        with self._lock:
+            return self._bytes
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._items)
+
+    def get(self, rig: Rig, shape: tuple) -> Triangulator:
+        key = (id(rig), tuple(shape))
+        with self._lock:
+            tri = self._items.get(key)
+            if tri is not None and tri.rig is rig:
+                self._items.move_to_end(key)
+                return tri
+        tri = Triangulator.for_shape(rig, shape)
+        size = self._size(tri)
+        if size > self.max_bytes:
+            return tri
+        with self._lock:
+            old = self._items.pop(key, None)
+            if old is not None:
+                self._bytes -= self._size(old)
+            self._items[key] = tri
+            self._bytes += size
+            while self._bytes > self.max_bytes:
+                _, dropped = self._items.popitem(last=False)
+                self._bytes -= self._size(dropped)
+        return tri
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+            self._bytes = 0
+
+
+_TRIANGULATORS = _TriangulatorCache(TRIANGULATOR_CACHE_BYTES)
 
 
 def triangulate(rig: Rig, coords, *, max_residual: float | None = 1.0,
@@ -866,8 +731,9 @@ def triangulate(rig: Rig, coords, *, max_residual: float | None = 1.0,
 
     Notes
     -----
-    The rig's per-pixel precomputation (:class:`Triangulator`) is cached for the last
-    few (rig, shape) pairs, so repeated calls with the same rig are fast.
+    The rig's per-pixel precomputation (:class:`Triangulator`) is cached per process for
+    the most recently used (rig, shape) pairs, within ``TRIANGULATOR_CACHE_BYTES``
+    (thread-safe), so repeated calls with the same rig are fast.
     """
     up = getattr(coords, "u_p", None)
     if up is None:
@@ -877,7 +743,7 @@ def triangulate(rig: Rig, coords, *, max_residual: float | None = 1.0,
     shape = tuple(int(n) for n in np.shape(up))
     if len(shape) != 2:
         raise TriangulationError(f"u_p must be a (rows, cols) array, got shape {shape}")
-    tri = _cached_triangulator(_as_rig(rig), shape)
+    tri = _TRIANGULATORS.get(_as_rig(rig), shape)
     return tri.triangulate(coords, max_residual=max_residual, max_sigma_z=max_sigma_z,
                            use_v_p=use_v_p, check_bounds=check_bounds)
 
@@ -928,367 +794,3 @@ def triangulate_pixels(rig: Rig, u_c, v_c, u_p, v_p=None, *, sigma_u_p=None, sig
     tri = Triangulator.for_pixels(rig, u_c, v_c)
     c = _Coords(row(u_p), row(v_p), None, row(sigma_u_p), row(sigma_v_p))
     return tri.triangulate(c, max_residual=max_residual, check_bounds=False)
-
-
-# --------------------------------------------------------------------------------------
-# Height map: the cloud resampled on a regular XY grid
-# --------------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class HeightMap:
-    """Heights on a regular XY grid (north-up, like the camera image of the world frame).
-
-    Attributes
-    ----------
-    z : (H, W) ndarray of float32
-        Height (world z, mm) at ``x = x0 + j * pixel_mm``, ``y = y0 - i * pixel_mm`` for
-        row i and column j; NaN where there is no data.
-    x0, y0 : float
-        World x and y (mm) of the centre of pixel [0, 0] (the top-left one).
-    pixel_mm : float
-        Grid spacing (mm), the same along x and y.
-    sigma_z : (H, W) ndarray of float32 or None
-        Standard uncertainty of ``z`` (mm), interpolated like ``z``.
-    """
-
-    z: np.ndarray
-    x0: float
-    y0: float
-    pixel_mm: float
-    sigma_z: np.ndarray | None = None
-
-    def __post_init__(self):
-        _readonly(self.z)
-        _readonly(self.sigma_z)
-
-    @property
-    def x(self) -> np.ndarray:
-        """World x (mm) of each column, (W,)."""
-        return self.x0 + self.pixel_mm * np.arange(self.z.shape[1])
-
-    @property
-    def y(self) -> np.ndarray:
-        """World y (mm) of each row, (H,) (decreasing)."""
-        return self.y0 - self.pixel_mm * np.arange(self.z.shape[0])
-
-    @property
-    def extent(self) -> tuple[float, float, float, float]:
-        """(left, right, bottom, top) in mm of the pixels' outer edges (for imshow)."""
-        h, w = self.z.shape
-        p = self.pixel_mm
-        return (self.x0 - p / 2, self.x0 + (w - 0.5) * p, self.y0 - (h - 0.5) * p,
-                self.y0 + p / 2)
-
-    def binned(self, factor: int) -> HeightMap:
-        """The map on a grid ``factor`` times coarser: each pixel the mean of the valid
-        pixels of its ``factor x factor`` block (NaN where none is), e.g. for a preview.
-
-        The block [0, 0] starts at this map's pixel [0, 0]; the edges' partial blocks
-        average what they hold. ``sigma_z`` is averaged likewise (an upper bound on the
-        uncertainty of the mean, whose errors are correlated along the camera lines).
-        """
-        f = int(factor)
-        if f < 1:
-            raise TriangulationError(f"factor must be a positive integer, got {factor!r}")
-        if f == 1:
-            return self
-        p = self.pixel_mm
-        return HeightMap(_block_mean(self.z, f), self.x0 + (f - 1) / 2 * p,
-                         self.y0 - (f - 1) / 2 * p, f * p,
-                         None if self.sigma_z is None else _block_mean(self.sigma_z, f))
-
-
-def _block_mean(z, f):
-    h, w = z.shape
-    hp, wp = -(-h // f) * f, -(-w // f) * f
-    zp = np.full((hp, wp), np.nan)
-    zp[:h, :w] = z
-    blocks = zp.reshape(hp // f, f, wp // f, f)
-    fin = np.isfinite(blocks)
-    n = fin.sum(axis=(1, 3))
-    total = np.where(fin, blocks, 0.0).sum(axis=(1, 3))
-    return np.where(n > 0, total / np.maximum(n, 1), np.nan).astype(np.float32)
-
-
-def height_map(cloud: PointCloud, *, pixel_mm: float | None = None,
-               max_pixels: int = 64_000_000) -> HeightMap:
-    """Resample an organised cloud on a regular XY grid.
-
-    Each 2 x 2 block of neighbouring camera pixels with four valid points is split into
-    two triangles; grid nodes inside a triangle's XY footprint get the linear
-    (barycentric) interpolation of its vertices' z (and sigma_z). Where triangles overlap
-    in XY (a surface seen from the side), the highest z wins, as seen from above. No
-    value is made up across invalid pixels.
-
-    Parameters
-    ----------
-    cloud : PointCloud
-    pixel_mm : float, optional
-        Grid spacing in mm. Default: the median spacing of neighbouring points along the
-        camera rows (the camera's footprint per pixel).
-    max_pixels : int
-        Refuse grids larger than this (a guard against a wrong ``pixel_mm``).
-
-    Returns
-    -------
-    HeightMap
-    """
-    xyz = cloud.xyz
-    mask = cloud.mask
-    if cloud.count < 3:
-        raise TriangulationError("the cloud has fewer than 3 valid points: no height map")
-    if pixel_mm is None:
-        # median spacing along the rows (from up to ~200 rows: a robust, cheap estimate)
-        sub = xyz[::max(1, xyz.shape[0] // 200), :, :2]
-        dx = np.linalg.norm(np.diff(sub, axis=1), axis=2)
-        dx = dx[np.isfinite(dx)]
-        if dx.size == 0:
-            dx = np.linalg.norm(np.diff(xyz[:, :, :2], axis=0), axis=2)
-            dx = dx[np.isfinite(dx)]
-        if dx.size == 0:
-            raise TriangulationError("no two neighbouring valid points: give pixel_mm")
-        pixel_mm = float(np.median(dx))
-    pixel_mm = float(pixel_mm)
-    if not (np.isfinite(pixel_mm) and pixel_mm > 0):
-        raise TriangulationError(f"pixel_mm must be finite and > 0, got {pixel_mm!r}")
-    xmin, xmax, ymin, ymax = _xy_bounds(xyz, mask)
-    x0 = np.floor(xmin / pixel_mm) * pixel_mm
-    y0 = np.ceil(ymax / pixel_mm) * pixel_mm
-    W = int(np.ceil((xmax - x0) / pixel_mm)) + 1
-    H = int(np.ceil((y0 - ymin) / pixel_mm)) + 1
-    if W * H > max_pixels:
-        raise TriangulationError(
-            f"a height map of {H} x {W} pixels at {pixel_mm} mm is too large")
-    sz = cloud.sigma_z
-    zmap = np.full((H, W), -np.inf)
-    smap = np.full((H, W), np.nan)
-    _raster_kernel(xyz, np.ascontiguousarray(sz), float(x0), float(y0), pixel_mm, zmap, smap)
-    zmap[~np.isfinite(zmap)] = np.nan
-    has_sigma = bool(np.any(np.isfinite(sz)))
-    return HeightMap(zmap.astype(np.float32), float(x0), float(y0), pixel_mm,
-                     smap.astype(np.float32) if has_sigma else None)
-
-
-@njit(cache=True, nogil=True)
-def _xy_bounds(xyz, mask):  # pragma: no cover - numba
-    xmin = np.inf
-    xmax = -np.inf
-    ymin = np.inf
-    ymax = -np.inf
-    for r in range(mask.shape[0]):
-        for c in range(mask.shape[1]):
-            if mask[r, c]:
-                x = xyz[r, c, 0]
-                y = xyz[r, c, 1]
-                xmin = min(xmin, x)
-                xmax = max(xmax, x)
-                ymin = min(ymin, y)
-                ymax = max(ymax, y)
-    return xmin, xmax, ymin, ymax
-
-
-@njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _raster_tri(ja, ia, za, sa, jb, ib, zb, sb, jc, ic, zc, sc, zmap,
-                smap):  # pragma: no cover - numba
-    # vertices in grid coordinates (column j, row i); fill the nodes inside
-    det = (jb - ja) * (ic - ia) - (jc - ja) * (ib - ia)
-    if det == 0.0:
-        return
-    H, W = zmap.shape
-    jlo = max(int(np.ceil(min(ja, jb, jc))), 0)
-    jhi = min(int(np.floor(max(ja, jb, jc))), W - 1)
-    ilo = max(int(np.ceil(min(ia, ib, ic))), 0)
-    ihi = min(int(np.floor(max(ia, ib, ic))), H - 1)
-    inv = 1.0 / det
-    eps = -1e-12
-    for i in range(ilo, ihi + 1):
-        for j in range(jlo, jhi + 1):
-            # barycentric coordinates of node (i, j)
-            l1 = ((j - ja) * (ic - ia) - (jc - ja) * (i - ia)) * inv
-            l2 = ((jb - ja) * (i - ia) - (j - ja) * (ib - ia)) * inv
-            l0 = 1.0 - l1 - l2
-            if l0 < eps or l1 < eps or l2 < eps:
-                continue
-            z = l0 * za + l1 * zb + l2 * zc
-            if z > zmap[i, j]:
-                zmap[i, j] = z
-                smap[i, j] = l0 * sa + l1 * sb + l2 * sc
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _raster_kernel(xyz, sz, x0, y0, p, zmap, smap):  # pragma: no cover - numba
-    rows, cols = xyz.shape[0], xyz.shape[1]
-    ip = 1.0 / p
-    # grid coordinates of one camera row, reused by the next row's quads
-    j0 = np.empty(cols)
-    i0 = np.empty(cols)
-    j1 = np.empty(cols)
-    i1 = np.empty(cols)
-    for c in range(cols):
-        j1[c] = (xyz[0, c, 0] - x0) * ip
-        i1[c] = (y0 - xyz[0, c, 1]) * ip
-    for r in range(rows - 1):
-        for c in range(cols):
-            j0[c] = j1[c]
-            i0[c] = i1[c]
-            j1[c] = (xyz[r + 1, c, 0] - x0) * ip
-            i1[c] = (y0 - xyz[r + 1, c, 1]) * ip
-        for c in range(cols - 1):
-            z00 = xyz[r, c, 2]
-            z01 = xyz[r, c + 1, 2]
-            z10 = xyz[r + 1, c, 2]
-            z11 = xyz[r + 1, c + 1, 2]
-            if not (np.isfinite(z00) and np.isfinite(z01) and np.isfinite(z10)
-                    and np.isfinite(z11)):
-                continue
-            _raster_tri(j0[c], i0[c], z00, sz[r, c], j0[c + 1], i0[c + 1], z01,
-                        sz[r, c + 1], j1[c + 1], i1[c + 1], z11, sz[r + 1, c + 1], zmap, smap)
-            _raster_tri(j0[c], i0[c], z00, sz[r, c], j1[c + 1], i1[c + 1], z11,
-                        sz[r + 1, c + 1], j1[c], i1[c], z10, sz[r + 1, c], zmap, smap)
-
-
-# --------------------------------------------------------------------------------------
-# The whole step: scan -> cloud -> height map
-# --------------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class Reconstruction:
-    """What :func:`reconstruct_scan` makes of one scan.
-
-    Attributes
-    ----------
-    coords : telefringe.decode.ProjectorCoordinates
-    cloud : PointCloud
-    height : HeightMap or None
-    texture : (rows, cols) ndarray of float32, the fringe-free camera image (white frame
-        or mean of a phase group), for marker detection and display.
-    radiance : (rows, cols) ndarray of float32 or None, brightness per unit exposure
-        (DN at exposure 1) from the mean of every phase image (:func:`scan_radiance`; HDR:
-        the longest unsaturated exposure), or the decoder's background when the scan has
-        no phase images; for locating specular highlights (BGA).
-    """
-
-    coords: object
-    cloud: PointCloud
-    height: HeightMap | None
-    texture: np.ndarray
-    radiance: np.ndarray | None = None
-
-
-def radiance_image(coords) -> np.ndarray | None:
-    """The decoder's background divided by its per-pixel exposure (float32), or None.
-
-    ``coords`` is a :class:`telefringe.decode.ProjectorCoordinates`; the finest group of
-    the u axis (else v) is used, as the decoder's own ``background``.
-    """
-    axes = getattr(coords, "axes", None) or {}
-    for name in ("u", "v"):
-        ax = axes.get(name)
-        if ax is None:
-            continue
-        bg = getattr(ax, "background", None)
-        ex = getattr(ax, "exposure", None)
-        if bg is None:
-            continue
-        bg = np.asarray(bg, dtype=np.float64)
-        ex = np.ones_like(bg) if ex is None else np.asarray(ex, dtype=np.float64)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = np.where(ex > 0, bg / ex, np.nan)
-        return r.astype(np.float32)
-    bg = getattr(coords, "background", None)
-    return None if bg is None else np.asarray(bg, dtype=np.float32)
-
-
-def scan_radiance(scan) -> np.ndarray:
-    """(rows, cols) float32 brightness per unit exposure from every phase image of a scan.
-
-    Per exposure, the mean of all its phase images (whole periods of every group: the
-    pattern's mean level, so the background averaged over all groups, with sqrt(images)
-    less noise than one group's background); per pixel, the longest exposure none of whose
-    images saturates (the shortest where all do), divided by that exposure. This is the
-    image that locates BGA balls by their highlights (:func:`telefringe.metrology.
-    measure_bga`).
-
-    Raises
-    ------
-    ValueError
-        When the scan has no phase images.
-    """
-    from telefringe.fringes.scan import PhaseGroup
-
-    sums: dict[float, np.ndarray] = {}
-    counts: dict[float, int] = {}
-    sat: dict[float, np.ndarray] = {}
-    for g, st in zip(scan.manifest.groups, scan.stacks, strict=True):
-        if not isinstance(g, PhaseGroup):
-            continue
-        e = float(g.exposure)
-        total = np.sum(st, axis=0, dtype=np.float64)
-        sums[e] = sums[e] + total if e in sums else total
-        counts[e] = counts.get(e, 0) + st.shape[0]
-        s_ = np.any(st >= scan.max_value, axis=0)
-        sat[e] = sat[e] | s_ if e in sat else s_
-    if not sums:
-        raise ValueError("the scan has no phase images")
-    exps = sorted(sums)
-    out = sums[exps[0]] / (counts[exps[0]] * exps[0])
-    for e in exps[1:]:
-        ok = ~sat[e]
-        out[ok] = (sums[e] / (counts[e] * e))[ok]
-    return out.astype(np.float32)
-
-
-def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
-                     max_sigma_z: float | None = None, pixel_mm: float | None = None,
-                     with_height_map: bool = True, **decode_options) -> Reconstruction:
-    """Decode a scan and triangulate it with a rig (what ``telefringe reconstruct`` does).
-
-    Parameters
-    ----------
-    scan : telefringe.scan.Scan
-    rig : Rig
-    max_residual, max_sigma_z : see :func:`triangulate`.
-    pixel_mm : grid spacing of the height map (default: the camera's footprint).
-    with_height_map : bool, resample the cloud on a regular XY grid.
-    **decode_options : passed to :func:`telefringe.decode.decode` (``method``,
-        ``gamma_correction``, ``min_modulation``, ``phase_errors``, ...). A
-        :class:`~telefringe.calibrate.RigCalibration` that learned the projector's
-        nonlinearity (``phase_errors``) gives it to the decoder unless ``phase_errors`` is
-        passed here (``phase_errors=None`` learns it from the scan instead).
-
-    Raises
-    ------
-    TriangulationError
-        When the scan's image size or projector size does not match the rig.
-    telefringe.decode.DecodeError
-        When the scan cannot be decoded.
-    """
-    from telefringe.fringes.decode import decode
-    from telefringe.fringes.images import fringe_free_image
-
-    learned = getattr(rig, "phase_errors", None)  # a RigCalibration's projector model
-    if learned and "phase_errors" not in decode_options:
-        decode_options = {**decode_options, "phase_errors": learned}
-    rig = _as_rig(rig)
-    shape = tuple(int(n) for n in scan.stacks[0].shape[1:])
-    kc = rig.camera.intrinsics
-    if kc.width and kc.height and (kc.height, kc.width) != shape:
-        raise TriangulationError(
-            f"the scan's images are {shape[1]} x {shape[0]} (width x height) but the rig's "
-            f"camera is {kc.width} x {kc.height}: the rig does not belong to this scan")
-    kp = rig.projector.intrinsics
-    man = scan.manifest
-    if kp.width and kp.height and (man.projector_width, man.projector_height) != (
-            kp.width, kp.height):
-        raise TriangulationError(
-            f"the scan's patterns are for a {man.projector_width} x {man.projector_height} "
-            f"projector but the rig's projector is {kp.width} x {kp.height}")
-    coords = decode(scan, **decode_options)
-    cloud = triangulate(rig, coords, max_residual=max_residual, max_sigma_z=max_sigma_z)
-    hm = None
-    if with_height_map and cloud.count >= 3:
-        hm = height_map(cloud, pixel_mm=pixel_mm)
-    texture = np.asarray(fringe_free_image(scan), dtype=np.float32)
-    try:
-        radiance = scan_radiance(scan)
-    except ValueError:  # no phase images: the decoder's background
-        radiance = radiance_image(coords)
-    return Reconstruction(coords, cloud, hm, texture, radiance)

@@ -1,0 +1,100 @@
+"""The whole step: scan -> decoded projector coordinates -> cloud -> height map."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from telefringe.devices.rig import Rig
+from telefringe.fringes.images import radiance_image, scan_radiance
+from telefringe.fringes.scan import PhaseGroup
+from telefringe.reconstruction._rig import as_rig as _as_rig
+from telefringe.reconstruction.cloud import PointCloud, TriangulationError
+from telefringe.reconstruction.heightmap import HeightMap, height_map
+from telefringe.reconstruction.telecentric import triangulate
+
+__all__ = ["Reconstruction", "reconstruct_scan"]
+
+
+@dataclass(frozen=True, eq=False)
+class Reconstruction:
+    """What :func:`reconstruct_scan` makes of one scan.
+
+    Attributes
+    ----------
+    coords : telefringe.decode.ProjectorCoordinates
+    cloud : PointCloud
+    height : HeightMap or None
+    texture : (rows, cols) ndarray of float32, the fringe-free camera image (white frame
+        or mean of a phase group), for marker detection and display.
+    radiance : (rows, cols) ndarray of float32 or None, brightness per unit exposure
+        (DN at exposure 1) from the mean of every phase image (:func:`scan_radiance`; HDR:
+        the longest unsaturated exposure), or the decoder's background when the scan has
+        no phase images; for locating specular highlights (BGA).
+    """
+
+    coords: object
+    cloud: PointCloud
+    height: HeightMap | None
+    texture: np.ndarray
+    radiance: np.ndarray | None = None
+
+
+
+def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
+                     max_sigma_z: float | None = None, pixel_mm: float | None = None,
+                     with_height_map: bool = True, **decode_options) -> Reconstruction:
+    """Decode a scan and triangulate it with a rig (what ``telefringe reconstruct`` does).
+
+    Parameters
+    ----------
+    scan : telefringe.scan.Scan
+    rig : Rig
+    max_residual, max_sigma_z : see :func:`triangulate`.
+    pixel_mm : grid spacing of the height map (default: the camera's footprint).
+    with_height_map : bool, resample the cloud on a regular XY grid.
+    **decode_options : passed to :func:`telefringe.decode.decode` (``method``,
+        ``gamma_correction``, ``min_modulation``, ``phase_errors``, ...). A
+        :class:`~telefringe.calibrate.RigCalibration` that learned the projector's
+        nonlinearity (``phase_errors``) gives it to the decoder unless ``phase_errors`` is
+        passed here (``phase_errors=None`` learns it from the scan instead).
+
+    Raises
+    ------
+    TriangulationError
+        When the scan's image size or projector size does not match the rig.
+    telefringe.decode.DecodeError
+        When the scan cannot be decoded.
+    """
+    from telefringe.fringes.decode import decode
+    from telefringe.fringes.images import fringe_free_image
+
+    learned = getattr(rig, "phase_errors", None)  # a RigCalibration's projector model
+    if learned and "phase_errors" not in decode_options:
+        decode_options = {**decode_options, "phase_errors": learned}
+    rig = _as_rig(rig)
+    shape = tuple(int(n) for n in scan.stacks[0].shape[1:])
+    kc = rig.camera.intrinsics
+    if kc.width and kc.height and (kc.height, kc.width) != shape:
+        raise TriangulationError(
+            f"the scan's images are {shape[1]} x {shape[0]} (width x height) but the rig's "
+            f"camera is {kc.width} x {kc.height}: the rig does not belong to this scan")
+    kp = rig.projector.intrinsics
+    man = scan.manifest
+    if kp.width and kp.height and (man.projector_width, man.projector_height) != (
+            kp.width, kp.height):
+        raise TriangulationError(
+            f"the scan's patterns are for a {man.projector_width} x {man.projector_height} "
+            f"projector but the rig's projector is {kp.width} x {kp.height}")
+    coords = decode(scan, **decode_options)
+    cloud = triangulate(rig, coords, max_residual=max_residual, max_sigma_z=max_sigma_z)
+    hm = None
+    if with_height_map and cloud.count >= 3:
+        hm = height_map(cloud, pixel_mm=pixel_mm)
+    texture = np.asarray(fringe_free_image(scan), dtype=np.float32)
+    # no phase images (a Gray-code-only scan): the decoder's background; any other error
+    # of scan_radiance is raised
+    has_phase = any(isinstance(g, PhaseGroup) for g in scan.manifest.groups)
+    radiance = scan_radiance(scan) if has_phase else radiance_image(coords)
+    return Reconstruction(coords, cloud, hm, texture, radiance)
