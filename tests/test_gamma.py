@@ -13,16 +13,10 @@ from telefringe.fringes.nonlinearity import (
     periodic_error,
 )
 from telefringe.fringes.patterns import precompensate
-from telefringe.fringes.phase import NoiseModel, wrap, wrapped_phase
+from telefringe.fringes.phase import wrap, wrapped_phase
 from telefringe.simulate.presets import get_preset
 from telefringe.simulate.render import default_groups, render_scan
 from telefringe.simulate.scenes import plate_at_z
-
-
-def rig_noise(vrig):
-    ph = vrig.photometry
-    return NoiseModel(read_noise=ph.read_noise_e * 255 / ph.full_well_e,
-                      gain=255 / ph.full_well_e)
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +37,7 @@ def _interior(truth):
     return truth.lit & binary_erosion(truth.part == 0, iterations=2)
 
 
-def test_three_steps_gamma_error_drops_tenfold_without_wrong_orders(fast_rig):
+def test_three_steps_gamma_error_drops_tenfold_without_wrong_orders(fast_rig, rig_noise):
     scan, truth = _scan(fast_rig, 3, seed=3)
     width = fast_rig.projector.intrinsics.width
     lit = truth.lit & np.isin(truth.part, (0, 1))
@@ -72,7 +66,7 @@ def test_three_steps_gamma_error_drops_tenfold_without_wrong_orders(fast_rig):
     assert rms == pytest.approx(pred, rel=0.05)
 
 
-def test_four_steps_residual_at_noise_floor(fast_rig):
+def test_four_steps_residual_at_noise_floor(fast_rig, rig_noise):
     scan, truth = _scan(fast_rig, 4, seed=4)
     width = fast_rig.projector.intrinsics.width
     pc = decode(scan, noise=rig_noise(fast_rig))
