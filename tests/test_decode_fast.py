@@ -264,3 +264,54 @@ def test_fast_path_bad_input():
     with pytest.raises(DecodeError, match="one model per stack"):
         decode_axis_fast(stacks, (1, 8, 64), 4, length=800,
                          phase_errors=[PhaseErrorModel.zero(1)])
+
+
+def test_table_cache_is_thread_safe_and_bounded(monkeypatch):
+    """Many threads asking for more models than the cache holds: every answer is the
+    tables of the model asked for (no KeyError when another thread evicts between the
+    store and the return), and the cache stays within its entry and byte bounds."""
+    import sys
+    import threading
+
+    from telefringe.fringes import decode as dec
+
+    models = [PhaseErrorModel(8, (1, 2), np.array([0.01 * (i + 1), 0.0]),
+                              np.array([0.0, 0.005])) for i in range(12)]
+    monkeypatch.setattr(dec, "_TABLE_CACHE", type(dec._TABLE_CACHE)())
+    # the answers one thread gets, one model at a time (copies)
+    single = [dec._model_tables(m, 1) for m in models]
+    expect = [v[0].copy() for v in single]
+    one = max(dec._table_bytes(v) for v in single)
+    monkeypatch.setattr(dec, "_TABLE_CACHE", type(dec._TABLE_CACHE)())
+    monkeypatch.setattr(dec, "_TABLE_CACHE_MAX_ENTRIES", 5)
+    monkeypatch.setattr(dec, "_TABLE_CACHE_MAX_BYTES", 4 * one)  # 4 of these at most
+    errors, sizes = [], []
+
+    def work(seed):
+        rng = np.random.default_rng(seed)
+        try:
+            for i in rng.integers(0, len(models), 60):
+                g, nf, _ = dec._model_tables(models[i], 1)
+                if not np.array_equal(g, expect[i]):
+                    errors.append(f"model {i}: wrong table")
+                if g.flags.writeable or nf.flags.writeable:
+                    errors.append("a cached table is writeable")
+                sizes.append(len(dec._TABLE_CACHE))
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(repr(exc))
+
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # interleave the threads as much as possible
+    try:
+        threads = [threading.Thread(target=work, args=(s,)) for s in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(old)
+    assert not errors, errors[:5]
+    assert max(sizes) <= 5
+    with dec._TABLE_CACHE_LOCK:
+        total = sum(dec._table_bytes(v) for v in dec._TABLE_CACHE.values())
+        assert len(dec._TABLE_CACHE) <= 4 and total <= dec._TABLE_CACHE_MAX_BYTES
