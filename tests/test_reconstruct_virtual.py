@@ -22,10 +22,12 @@ from telefringe.fringes.decode import decode
 from telefringe.fringes.images import fringe_free_image
 from telefringe.metrology.core import (
     BGANominal,
+    Plane,
     measure_bga,
     measure_plate,
     measure_sphere,
     measure_steps,
+    seating_plane_coplanarity,
 )
 from telefringe.reconstruction.reconstruct import scan_radiance, triangulate
 from telefringe.simulate import scenes
@@ -144,9 +146,10 @@ def test_step_heights(fast):
                   < K * m.sigma_steps + 1.5e-3)
 
 
-def test_bga_on_the_paper_rig():
+@pytest.fixture(scope="module")
+def paper_bga():
     """A 6 x 6 BGA seen by a 200 x 200 pixel window of the paper's camera (same optics
-    and pixels as the full sensor, so the balls are 14 px wide), HDR."""
+    and pixels as the full sensor, so the balls are 14 px wide), HDR, measured."""
     vr = get_preset("paper")
     cam = vr.rig.camera
     bga = scenes.default_bga(seed=0, rows=6, cols=6, n_missing=2, centre=(15.0, 12.0))
@@ -160,14 +163,22 @@ def test_bga_on_the_paper_rig():
                              vr.rig.projector))
     scan, truth, cloud, coords = _run(vr_roi, bga, seed=3, exposures=HDR_EXPOSURES,
                                       with_coords=True)
-    f = truth.features
     nominal = BGANominal(rows=6, cols=6, pitch_mm=0.8, ball_diameter_mm=0.45)
     m = measure_bga(cloud, nominal, image=scan_radiance(scan))
+    return truth.features, m
+
+
+def _true_apex_heights(f, m):
+    true_h = {tuple(i): a[2] for i, a in zip(f["ball_index"], f["apexes_world"], strict=True)}
+    return np.array([true_h[tuple(i)] for i in m.index])
+
+
+def test_bga_on_the_paper_rig(paper_bga):
+    f, m = paper_bga
     assert m.refined.all()
     assert sorted(m.missing) == sorted(tuple(x) for x in f["missing"])
     assert m.n_balls == len(f["ball_index"]) and m.unexpected == ()
-    true_h = {tuple(i): a[2] for i, a in zip(f["ball_index"], f["apexes_world"], strict=True)}
-    th = np.array([true_h[tuple(i)] for i in m.index])
+    th = _true_apex_heights(f, m)
     e = m.height - th
     # apex heights against their sigma, two-sided from the sampling error: n = 34 balls,
     # 1 / sqrt(2 n) = 12 %, 4 of them (measured 1.37: sigma_height is about 37 % low, a
@@ -191,4 +202,26 @@ def test_bga_on_the_paper_rig():
     pe = np.concatenate(pe)
     assert pe.size > 40
     assert np.sqrt(np.mean(pe**2)) < 0.35e-3  # measured 0.16 um: 2x
-    assert m.coplanarity.value > 0
+    # the measured apex heights give the truth's coplanarity (the true apexes on the true
+    # substrate): measured 69.95 vs 70.01 um; within 2x the largest apex error (2.8 um)
+    xy = np.array([cw[tuple(i)][:2] for i in m.index])
+    flat = Plane.horizontal(0.0)
+    truth_cop = seating_plane_coplanarity(np.column_stack([xy, th]), np.array([15.0, 12.0]),
+                                          reference=flat).value
+    from_heights = seating_plane_coplanarity(np.column_stack([xy, m.height]),
+                                             np.array([15.0, 12.0]), reference=flat).value
+    assert abs(from_heights - truth_cop) < 2 * np.max(np.abs(e)), (from_heights, truth_cop)
+
+
+@pytest.mark.xfail(strict=True, reason="measure_bga's coplanarity of this 6 x 6 window is "
+                   "56.2 um against the truth's 70.0 um, although its apex heights give "
+                   "69.95 um (a defect in measure_bga's seating plane: reported)")
+def test_bga_coplanarity_on_the_paper_rig(paper_bga):
+    f, m = paper_bga
+    cw = {tuple(i): c for i, c in zip(f["ball_index"], f["centres_world"], strict=True)}
+    xy = np.array([cw[tuple(i)][:2] for i in m.index])
+    truth_cop = seating_plane_coplanarity(np.column_stack([xy, _true_apex_heights(f, m)]),
+                                          np.array([15.0, 12.0]),
+                                          reference=Plane.horizontal(0.0)).value
+    assert abs(m.coplanarity.value - truth_cop) < 2 * np.max(np.abs(m.height
+                                                                     - _true_apex_heights(f, m)))
