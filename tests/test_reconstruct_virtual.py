@@ -213,9 +213,11 @@ def test_bga_on_the_paper_rig(paper_bga):
     assert abs(from_heights - truth_cop) < 2 * np.max(np.abs(e)), (from_heights, truth_cop)
 
 
-@pytest.mark.xfail(strict=True, reason="measure_bga's coplanarity of this 6 x 6 window is "
-                   "56.2 um against the truth's 70.0 um, although its apex heights give "
-                   "69.95 um (a defect in measure_bga's seating plane: reported)")
+@pytest.mark.xfail(
+    strict=True, raises=AssertionError,
+    reason="measure_bga's coplanarity of this 6 x 6 window is "
+    "56.2 um against the truth's 70.0 um, although its apex heights give "
+    "69.95 um (a defect in measure_bga's seating plane: reported)")
 def test_bga_coplanarity_on_the_paper_rig(paper_bga):
     f, m = paper_bga
     cw = {tuple(i): c for i, c in zip(f["ball_index"], f["centres_world"], strict=True)}
