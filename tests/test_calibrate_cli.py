@@ -34,8 +34,13 @@ def test_calibrate_writes_rig_and_report(calib_set, tmp_path, capsys):
     assert "projector_side not given" not in out
     calib = load_rig(rig_path)
     truth = get_preset("fast").rig
-    assert abs(calib.rig.camera.intrinsics.m / truth.camera.intrinsics.m - 1) < 1e-4
-    assert calib.rms_camera < 0.05 and calib.rms_projector < 0.05
+    # measured for seeds 3 (this one) / 4 / 5: m off by 2.7e-5 / 3.2e-5 / 2.1e-5, RMS
+    # camera 0.0069 / 0.0067 / 0.0067 px, projector 0.0044 / 0.0047 / 0.0048 projector px
+    # (`telefringe simulate calibration --rig fast --poses 6 --seed s`, then this command):
+    # bounds 2x the largest
+    assert abs(calib.rig.camera.intrinsics.m / truth.camera.intrinsics.m - 1) < 6.5e-5
+    assert calib.rms_camera < 0.014, calib.rms_camera
+    assert calib.rms_projector < 0.0096, calib.rms_projector
     assert calib.mirror == "projector_side=right"
     assert sorted(p.name for p in report.iterdir()) == [
         "histogram_camera.png", "histogram_projector.png", "residuals_camera.png",

@@ -7,19 +7,10 @@ import numpy as np
 import pytest
 
 from telefringe.fringes.decode import decode
-from telefringe.fringes.phase import NoiseModel
 from telefringe.fringes.scan import Scan, ScanManifest
 from telefringe.simulate.presets import get_preset
 from telefringe.simulate.render import default_groups, render_scan
 from telefringe.simulate.scenes import default_bga, plate_at_z
-
-
-def rig_noise(vrig) -> NoiseModel:
-    """The rig's camera noise in DN (8 bit): shot noise of full_well_e electrons at 255 DN
-    and read noise, plus quantisation."""
-    ph = vrig.photometry
-    return NoiseModel(read_noise=ph.read_noise_e * 255 / ph.full_well_e,
-                      gain=255 / ph.full_well_e)
 
 
 def _shared() -> Path | None:
@@ -31,7 +22,7 @@ def _shared() -> Path | None:
 
 
 @pytest.mark.slow
-def test_paper_plate_u_at_noise_floor_no_wrong_orders():
+def test_paper_plate_u_at_noise_floor_no_wrong_orders(rig_noise):
     vrig = get_preset("paper")
     scan, truth = render_scan(vrig, plate_at_z(0.0), default_groups(vrig, axes=("u",)),
                               seed=11, white=False, black=False)
@@ -54,7 +45,7 @@ def test_paper_plate_u_at_noise_floor_no_wrong_orders():
 
 
 @pytest.mark.slow
-def test_bga_hdr_valid_on_balls():
+def test_bga_hdr_valid_on_balls(rig_noise):
     """Dark, shiny solder balls: the long exposure reaches the dim flanks, the short one the
     specular highlights; no single exposure does both."""
     vrig = get_preset("paper")

@@ -4,6 +4,7 @@
 import numpy as np
 import pytest
 
+from telefringe.fringes import nonlinearity as nl
 from telefringe.fringes.decode import decode
 from telefringe.fringes.nonlinearity import (
     PhaseErrorModel,
@@ -13,16 +14,11 @@ from telefringe.fringes.nonlinearity import (
     periodic_error,
 )
 from telefringe.fringes.patterns import precompensate
-from telefringe.fringes.phase import NoiseModel, wrap, wrapped_phase
+from telefringe.fringes.phase import wrap, wrapped_phase
+from telefringe.fringes.scan import PhaseGroup, Scan, ScanManifest
 from telefringe.simulate.presets import get_preset
 from telefringe.simulate.render import default_groups, render_scan
 from telefringe.simulate.scenes import plate_at_z
-
-
-def rig_noise(vrig):
-    ph = vrig.photometry
-    return NoiseModel(read_noise=ph.read_noise_e * 255 / ph.full_well_e,
-                      gain=255 / ph.full_well_e)
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +39,7 @@ def _interior(truth):
     return truth.lit & binary_erosion(truth.part == 0, iterations=2)
 
 
-def test_three_steps_gamma_error_drops_tenfold_without_wrong_orders(fast_rig):
+def test_three_steps_gamma_error_drops_tenfold_without_wrong_orders(fast_rig, rig_noise):
     scan, truth = _scan(fast_rig, 3, seed=3)
     width = fast_rig.projector.intrinsics.width
     lit = truth.lit & np.isin(truth.part, (0, 1))
@@ -72,7 +68,7 @@ def test_three_steps_gamma_error_drops_tenfold_without_wrong_orders(fast_rig):
     assert rms == pytest.approx(pred, rel=0.05)
 
 
-def test_four_steps_residual_at_noise_floor(fast_rig):
+def test_four_steps_residual_at_noise_floor(fast_rig, rig_noise):
     scan, truth = _scan(fast_rig, 4, seed=4)
     width = fast_rig.projector.intrinsics.width
     pc = decode(scan, noise=rig_noise(fast_rig))
@@ -198,3 +194,77 @@ def test_precompensation_with_a_measured_response():
         precompensate(want)
     with pytest.raises(ValueError):
         fit_response([0.2, 0.5, 1.0], [1, 2, 3])
+
+
+def test_gauss_newton_normal_matrix_matches_finite_differences():
+    """_gauss_newton's normal matrix J^T W J (one iteration, no rejection) against J from
+    central differences of the pair residual r phi_a(c) - phi_b(c), phi_g(c) the true
+    phase the model c implies for each measured phase (solved here by the model's own
+    Newton inverse, which is tested separately against the forward series)."""
+    rng = np.random.default_rng(8)
+    per, r = (8, 64), 8
+    harm = [(1, 2, 3), (2, 3, 4)]
+    offs = np.cumsum([0] + [2 * len(h) for h in harm])
+    harm_arr = [np.asarray(h, dtype=np.int64) for h in harm]
+    coef = 0.03 * rng.standard_normal(int(offs[-1]))
+    models = nl._models(per, harm, offs, coef)
+    x = rng.uniform(0, 800, 400)  # projector pixels
+    true = [wrap(2 * np.pi * p * x / 800) for p in per]
+    samp = [wrap(t + m.error(t)) for t, m in zip(true, models, strict=True)]
+    sig = [np.full(x.size, 0.01), np.full(x.size, 0.02)]
+    pairs = [(0, 1, r, sig[0], sig[1], None, None)]
+    _, _, kept, ata, _ = nl._gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, 1,
+                                          np.inf, tol=0.0, reject_first=False)
+    assert kept == x.size
+
+    def phases(c):
+        return [m._invert(s, start=t) for m, s, t in
+                zip(nl._models(per, harm, offs, c), samp, true, strict=True)]
+
+    h = 1e-6
+    J = np.empty((x.size, coef.size))
+    for k in range(coef.size):
+        up, dn = coef.copy(), coef.copy()
+        up[k] += h
+        dn[k] -= h
+        pu, pd = phases(up), phases(dn)
+        J[:, k] = ((r * pu[0] - pu[1]) - (r * pd[0] - pd[1])) / (2 * h)
+    # the residual's weight, 1 / var with var from each phase's noise times its gain
+    # 1 / (1 + e'(phi))
+    gain = [1 / (1 + m.slope(t)) for m, t in zip(models, true, strict=True)]
+    w = 1 / ((r * sig[0] * gain[0]) ** 2 + (sig[1] * gain[1]) ** 2)
+    ref = J.T @ (w[:, None] * J)
+    # central differences of a smooth function, h = 1e-6 on coefficients of 0.03 rad:
+    # error ~1e-10 relative (the Newton inverse's 1e-14 rad / h); measured 1.4e-11. Leaving
+    # out the gain 1 / (1 + e') would be a 10 % error.
+    err = np.max(np.abs(ata - ref)) / np.max(np.abs(ref))
+    assert err < 1e-7, err
+
+
+@pytest.mark.xfail(
+    strict=True, raises=AssertionError,
+    reason="the learned correction of a pure sinusoid whose "
+    "fine phase covers its circle unevenly adds harmonics of 0.045 rad and "
+    "triples the u_p error (0.025 -> 0.080 px): the fit should find no "
+    "significant harmonic, or flag that the data cannot decide")
+def test_no_correction_learned_from_an_uneven_phase_coverage():
+    """Ideal sinusoidal fringes (no gamma) at L = 3840 px, 1/4/16/64/256, with camera
+    columns 0.998 of a fine period apart: the fine phase drifts slowly across the image
+    and covers its circle unevenly (27 of 36 10-degree bins)."""
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:48, 0:256].astype(float)
+    x = 10 + xx * (3820 / 255 * 0.999) + 0.037 * yy
+    groups, stacks = [], []
+    for p in (1, 4, 16, 64, 256):
+        k = np.arange(4)[:, None, None]
+        pat = 0.5 + 0.5 * np.cos(2 * np.pi * p * x / 3840 + 2 * np.pi * k / 4)
+        img = 40 + 160 * pat + rng.normal(0, 1.2, (4, *x.shape))
+        groups.append(PhaseGroup("u", p, 4))
+        stacks.append(np.clip(np.round(img), 0, 255).astype(np.uint8))
+    scan = Scan(ScanManifest(3840, 2160, tuple(groups)), tuple(stacks))
+    raw = decode(scan, gamma_correction=False, exact=True)
+    fit = decode(scan, exact=True)
+    e_raw = np.sqrt(np.nanmean((raw.u_p - x) ** 2))
+    e_fit = np.sqrt(np.nanmean((fit.u_p - x) ** 2))
+    # a correction learned from noise alone may cost a few % of the noise, not more
+    assert e_fit < 1.05 * e_raw, (e_fit, e_raw)

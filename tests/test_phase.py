@@ -53,6 +53,29 @@ def test_any_step_count_recovers_phase_modulation_background(steps, offset):
     assert np.allclose(wp.background, 100.0, atol=1e-12)
 
 
+@pytest.mark.parametrize("steps", [3, 4, 5, 8])
+def test_quadrature_is_its_definition_on_gamma_distorted_fringes(steps):
+    """quadrature = (2/N) sum_k I_k sin^2(phi + offset + 2 pi k / N) (WrappedPhase), written
+    out here sample by sample, at offset 0.7 (not 0 or -pi, where offset and 2 offset, or
+    +offset and -offset, give the same weights) on fringes with gamma 2.2."""
+    offset, a, b = 0.7, 20.0, 190.0
+    phi = np.linspace(-np.pi, np.pi, 721)[1:]
+    k = np.arange(steps)[:, None]
+    imgs = a + b * (0.5 + 0.5 * np.cos(phi + offset + 2 * np.pi * k / steps)) ** 2.2
+    wp = wrapped_phase(imgs, steps=steps, offset=offset)
+    theta = wp.phase + offset + 2 * np.pi * k / steps
+    ref = 2 / steps * np.sum(imgs * np.sin(theta) ** 2, axis=0)
+    assert np.max(np.abs(wp.quadrature - ref)) < 1e-12 * np.max(ref)
+    # the peaky fringe is darker where its phase is read: the level differs from A
+    # (by 5-20 % of it here, so a test taking one for the other would see it)
+    assert np.max(np.abs(wp.quadrature - wp.background) / wp.background) > 0.05
+    # for a pure sinusoid A + B cos(theta_k) it is A when N >= 4; with 3 steps the sum of
+    # cos(theta_k) sin^2(theta_k) leaves -(B/2) cos(3 (phi + offset))
+    pure = wrapped_phase(fringes(phi, steps, offset=offset), steps=steps, offset=offset)
+    expect = 100.0 - (30.0 * np.cos(3 * (phi + offset)) if steps == 3 else 0.0)
+    assert np.allclose(pure.quadrature, expect, rtol=1e-12)
+
+
 def test_dtypes_and_leading_shape_and_no_mutation():
     phi = np.linspace(-3, 3, 60).reshape(6, 10)
     f = fringes(phi, 4)

@@ -34,7 +34,8 @@ def test_reconstruct_folder_outputs(plate_out):
             "summary.json"} <= names
     summary = json.loads((out / "summary.json").read_text())
     assert summary["valid"] == rec.cloud.count > 0
-    assert summary["sigma_z_median_mm"] < 0.02
+    # measured 7.35 um for seeds 2 (this one), 3, 4: within 2x either way
+    assert 3.7e-3 < summary["sigma_z_median_mm"] < 14.7e-3, summary["sigma_z_median_mm"]
     # no overwrite without force, and nothing half-written on failure
     with pytest.raises(InputError, match="already exists"):
         reconstruct_to_folder(tmp / "scan", vr.rig, out)
@@ -63,9 +64,15 @@ def test_measure_plate_cli(plate_out, capsys):
     js = tmp / "plate.json"
     assert main(["measure", "plate", str(out), "--json", str(js)]) == 0
     res = json.loads(js.read_text())
-    assert res["z_mm"] == pytest.approx(-0.5, abs=1e-3)
-    assert res["spacing"]["n_x"] == 90
-    assert abs(res["spacing"]["mean_x_mm"] - 3.0) < 2e-3
+    # the true rig: Z against the fit's sigma (0.032 um; measured errors 2.3, 0.6, 2.0
+    # sigma for seeds 2 (this one), 3, 4), the mean distances against their standard
+    # error std / sqrt(n) ~ 0.10 um (measured 0.6-0.9 of it)
+    assert abs(res["z_mm"] + 0.5) < 4 * res["sigma_z_mm"], (res["z_mm"], res["sigma_z_mm"])
+    sp = res["spacing"]
+    assert sp["n_x"] == 90 and sp["n_y"] == 88
+    for ax in ("x", "y"):
+        se = sp[f"std_{ax}_mm"] / np.sqrt(sp[f"n_{ax}"])
+        assert abs(sp[f"mean_{ax}_mm"] - 3.0) < 4 * se, (ax, sp[f"mean_{ax}_mm"], se)
     printed = capsys.readouterr().out
     assert "Z = -0.499" in printed or "Z = -0.500" in printed
     # an existing JSON is not replaced without --force
@@ -93,8 +100,10 @@ def test_height_map_of_the_plate(plate_out):
     tmp, out, rec, vr = plate_out
     hm = read_height_tiff(out / "heightmap.tif")
     z = hm.z[np.isfinite(hm.z)]
-    # the plate at -0.5 mm fills most of the map; markers' edges add a few outliers
-    assert np.median(z) == pytest.approx(-0.5, abs=2e-3)
+    # the plate at -0.5 mm fills most of the map; markers' edges add a few outliers.
+    # Measured median error +0.074, +0.004, +0.098 um (seeds 2 (this one), 3, 4; the
+    # median's standard error is ~0.03 um, the markers' edges skew it): bound 2x the largest
+    assert np.median(z) == pytest.approx(-0.5, abs=0.2e-3)
     assert hm.pixel_mm == pytest.approx(0.0208 / 0.1597, rel=0.02)
 
 

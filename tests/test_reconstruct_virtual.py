@@ -22,10 +22,12 @@ from telefringe.fringes.decode import decode
 from telefringe.fringes.images import fringe_free_image, scan_radiance
 from telefringe.metrology import (
     BGANominal,
+    Plane,
     measure_bga,
     measure_plate,
     measure_sphere,
     measure_steps,
+    seating_plane_coplanarity,
 )
 from telefringe.reconstruction.telecentric import triangulate
 from telefringe.simulate import scenes
@@ -49,8 +51,9 @@ def fast():
 
 
 @pytest.fixture(scope="module")
-def plate(fast):
-    return _run(fast, scenes.plate_at_z(0.5))
+def plate(fast, rig_noise):
+    # decoded with the rig's own camera noise, so that sigma can be held to the errors
+    return _run(fast, scenes.plate_at_z(0.5), noise=rig_noise(fast))
 
 
 def test_plate_points_errors_match_their_sigma(plate, fast):
@@ -63,11 +66,23 @@ def test_plate_points_errors_match_their_sigma(plate, fast):
     far = np.ones(cloud.shape, bool)
     for cu, cv in truth.features["circle_centres_px"]:
         far &= (u - cu) ** 2 + (v - cv) ** 2 > (r_px + 3) ** 2
-    ok = far & np.isfinite(err)
-    assert ok.sum() > 0.4 * cloud.mask.size
+    # and inside the grid's outer markers: within ~5 px of the plate's own edge (3 mm
+    # beyond the outer centres) the blur mixes the plate with the unlit floor, and errors
+    # there reach 2x sigma (rms(z) 2.1 beyond 12 px from every marker; not flagged)
+    from matplotlib.path import Path
+
+    g = truth.features["circle_centres_px"].reshape(9, 11, 2)
+    corners = Path(np.array([g[0, 0], g[0, -1], g[-1, -1], g[-1, 0]]))
+    inside = corners.contains_points(np.stack([u.ravel(), v.ravel()], 1)).reshape(u.shape)
+    ok = far & inside & np.isfinite(err)
+    assert ok.sum() > 0.25 * cloud.mask.size
     z = err[ok] / cloud.sigma_z[ok]
-    # the decoder's sigma is slightly conservative on a plate (measured 0.85..1.07)
-    assert 0.75 < np.sqrt(np.mean(z**2)) < 1.15
+    # measured rms(z) = 1.004, 1.018, 1.014 (seeds 1 (this one), 2, 3); n = 23254 pixels:
+    # sampling error 1 / sqrt(2 n) = 0.46 %, 4 of them, plus 1 % for the model (first-order
+    # propagation, the correction's noise factor). With the default noise model instead of
+    # the rig's it is 0.85: sigma is only as good as the noise model it is given.
+    rms = np.sqrt(np.mean(z**2))
+    assert abs(rms - 1) < 4 / np.sqrt(2 * ok.sum()) + 0.01, rms
     assert abs(np.mean(err[ok])) < K * np.sqrt(np.mean(cloud.sigma_z[ok] ** 2) / ok.sum())
     # nearly every lit pixel is valid
     assert cloud.mask[truth.lit].mean() > 0.98
@@ -78,22 +93,27 @@ def test_plate_height_and_marker_spacing(plate):
     det = detect_circle_grid(fringe_free_image(scan), rows=9, cols=11)
     assert det, det.reason
     m = measure_plate(cloud, det.centers, rows=9, cols=11, pitch_mm=3.0)
-    # Z of the plate: the decoder's systematic error on flat surfaces is <= 0.2 um
-    # (measured); the fit's own sigma is ~0.03 um
-    assert abs(m.z.distance - 0.5) < K * m.z.sigma + 0.2e-3
-    # its tilt: measured 2.5e-5 rad (0.7 um over the 30 mm plate), several times the fit's
-    # sigma: allow 5e-5 rad
+    # Z of the plate against the fit's own sigma (~0.032 um): measured 0.009, 0.066,
+    # 0.015 um (0.3, 2.0, 0.5 sigma; seeds 1-3)
+    assert abs(m.z.distance - 0.5) < K * m.z.sigma
+    # its tilt: measured 2.4-2.9e-5 rad (0.7 um over the 30 mm plate, seeds 1-3), several
+    # times the fit's sigma: allow 5e-5 rad (< 2x)
     assert np.radians(m.z.angle_deg) < 5e-5
     sp = m.spacing
     assert sp.n_x == 90 and sp.n_y == 88
     # the mean distance is exact to its standard error; fast rig: ~1.5 um std
     assert sp.abs_err_x < K * sp.std_x / np.sqrt(sp.n_x)
     assert sp.abs_err_y < K * sp.std_y / np.sqrt(sp.n_y)
-    assert sp.std_x < 3e-3 and sp.std_y < 3e-3
-    # 3D centres against the truth: image-centre error (~0.012 px x 0.13 mm/px) dominates
+    # (measured std 0.90-1.02 um over seeds 1-3: bound 2x)
+    assert sp.std_x < 2e-3 and sp.std_y < 2e-3
+    # 3D centres against the truth: image-centre error (~0.005 px x 0.13 mm/px) dominates;
+    # measured RMS 0.69-0.73 um (seeds 1-3): bound 2x
     ce = m.centres.xyz - truth.features["circle_centres_world"]
-    assert np.sqrt(np.mean(ce[:, :2] ** 2)) < 3e-3
-    assert np.sqrt(np.mean((ce[:, 2] / m.centres.sigma_xyz[:, 2]) ** 2)) < 1.5
+    assert np.sqrt(np.mean(ce[:, :2] ** 2)) < 1.5e-3
+    # heights against their sigma: measured rms 1.17, 0.89, 1.04; n = 99 centres, sampling
+    # error 1 / sqrt(2 n) = 7 %, 4 of them either side
+    zc = np.sqrt(np.mean((ce[:, 2] / m.centres.sigma_xyz[:, 2]) ** 2))
+    assert abs(zc - 1) < 4 / np.sqrt(2 * ce.shape[0]), zc
 
 
 def test_sphere_radius(fast):
@@ -103,9 +123,12 @@ def test_sphere_radius(fast):
     f, base = measure_sphere(cloud)
     r_true = truth.features["radius_mm"]
     assert abs(f.radius - r_true) < K * f.sigma_radius
-    assert base is not None and abs(base.offset) < 1e-3
+    # the base plane (true z = 0) at its centroid, against its own sigma (~0.028 um):
+    # measured 0.020, 0.084 um (seeds 1, 2)
+    assert base is not None and abs(base.centroid[2]) < K * base.sigma_offset
     # the centre is pulled toward the projector by camera blur over the shading
-    # gradient (measured 4 um in x, 10x its noise): allow 10 um
+    # gradient (measured +4.0 / -2.0 / -5.7 um in x / y / z, seed 1; -6.3 um in z for
+    # seed 2; 10x its noise): allow 10 um (< 2x)
     assert np.all(np.abs(f.centre - truth.features["center_world"]) < 10e-3)
     assert f.rms < 2.0 * np.nanmedian(cloud.sigma_z)
 
@@ -115,16 +138,18 @@ def test_step_heights(fast):
     m = measure_steps(cloud)
     tops = truth.features["top_heights_mm"]
     assert len(m.heights) == len(tops) + 1
-    # structured errors of +-1.5 um appear on the base plate of this scene (a flat
-    # plate alone shows +-0.2 um); allow 2 um beyond 4 sigma
-    assert np.all(np.abs(m.heights[1:] - tops) < K * m.sigma_heights[1:] + 2e-3)
+    # structured errors appear on the base plate of this scene (a flat plate alone shows
+    # none beyond its sigma): heights and steps measured within 1.1 um (seeds 1, 2; sigma
+    # 0.13-0.17 um). Allow 1.5 um beyond 4 sigma (2.1 um in all, < 2x the measured)
+    assert np.all(np.abs(m.heights[1:] - tops) < K * m.sigma_heights[1:] + 1.5e-3)
     assert np.all(np.abs(m.step_heights - np.diff(np.concatenate([[0.0], tops])))
-                  < K * m.sigma_steps + 2e-3)
+                  < K * m.sigma_steps + 1.5e-3)
 
 
-def test_bga_on_the_paper_rig():
+@pytest.fixture(scope="module")
+def paper_bga():
     """A 6 x 6 BGA seen by a 200 x 200 pixel window of the paper's camera (same optics
-    and pixels as the full sensor, so the balls are 14 px wide), HDR."""
+    and pixels as the full sensor, so the balls are 14 px wide), HDR, measured."""
     vr = get_preset("paper")
     cam = vr.rig.camera
     bga = scenes.default_bga(seed=0, rows=6, cols=6, n_missing=2, centre=(15.0, 12.0))
@@ -138,18 +163,30 @@ def test_bga_on_the_paper_rig():
                              vr.rig.projector))
     scan, truth, cloud, coords = _run(vr_roi, bga, seed=3, exposures=HDR_EXPOSURES,
                                       with_coords=True)
-    f = truth.features
     nominal = BGANominal(rows=6, cols=6, pitch_mm=0.8, ball_diameter_mm=0.45)
     m = measure_bga(cloud, nominal, image=scan_radiance(scan))
+    return truth.features, m
+
+
+def _true_apex_heights(f, m):
+    true_h = {tuple(i): a[2] for i, a in zip(f["ball_index"], f["apexes_world"], strict=True)}
+    return np.array([true_h[tuple(i)] for i in m.index])
+
+
+def test_bga_on_the_paper_rig(paper_bga):
+    f, m = paper_bga
     assert m.refined.all()
     assert sorted(m.missing) == sorted(tuple(x) for x in f["missing"])
     assert m.n_balls == len(f["ball_index"]) and m.unexpected == ()
-    true_h = {tuple(i): a[2] for i, a in zip(f["ball_index"], f["apexes_world"], strict=True)}
-    th = np.array([true_h[tuple(i)] for i in m.index])
+    th = _true_apex_heights(f, m)
     e = m.height - th
-    # apex heights (measured: normalised RMS 1.37, RMS 1.03 um)
-    assert np.sqrt(np.mean((e / m.sigma_height) ** 2)) < 1.5
-    assert np.sqrt(np.mean(e**2)) < 3e-3
+    # apex heights against their sigma, two-sided from the sampling error: n = 34 balls,
+    # 1 / sqrt(2 n) = 12 %, 4 of them (measured 1.37: sigma_height is about 37 % low, a
+    # known gap of the BGA fit's uncertainty; this band only just admits it)
+    zh = np.sqrt(np.mean((e / m.sigma_height) ** 2))
+    assert abs(zh - 1) < 4 / np.sqrt(2 * e.size), zh
+    # RMS error: measured 1.03 um, bound 2x
+    assert np.sqrt(np.mean(e**2)) < 2.1e-3
     # pitch: from the specular highlights (measured RMS 0.16 um, largest 0.34 um over 53
     # pairs with the mean of every phase image; 0.25 / 0.61 um with the finest group's
     # background alone)
@@ -164,5 +201,29 @@ def test_bga_on_the_paper_rig():
         pe.append(meas[ok] - true_p[ok])
     pe = np.concatenate(pe)
     assert pe.size > 40
-    assert np.sqrt(np.mean(pe**2)) < 1.2e-3
-    assert m.coplanarity.value > 0
+    assert np.sqrt(np.mean(pe**2)) < 0.35e-3  # measured 0.16 um: 2x
+    # the measured apex heights give the truth's coplanarity (the true apexes on the true
+    # substrate): measured 69.95 vs 70.01 um; within 2x the largest apex error (2.8 um)
+    xy = np.array([cw[tuple(i)][:2] for i in m.index])
+    flat = Plane.horizontal(0.0)
+    truth_cop = seating_plane_coplanarity(np.column_stack([xy, th]), np.array([15.0, 12.0]),
+                                          reference=flat).value
+    from_heights = seating_plane_coplanarity(np.column_stack([xy, m.height]),
+                                             np.array([15.0, 12.0]), reference=flat).value
+    assert abs(from_heights - truth_cop) < 2 * np.max(np.abs(e)), (from_heights, truth_cop)
+
+
+@pytest.mark.xfail(
+    strict=True, raises=AssertionError,
+    reason="measure_bga's coplanarity of this 6 x 6 window is "
+    "56.2 um against the truth's 70.0 um, although its apex heights give "
+    "69.95 um (a defect in measure_bga's seating plane: reported)")
+def test_bga_coplanarity_on_the_paper_rig(paper_bga):
+    f, m = paper_bga
+    cw = {tuple(i): c for i, c in zip(f["ball_index"], f["centres_world"], strict=True)}
+    xy = np.array([cw[tuple(i)][:2] for i in m.index])
+    truth_cop = seating_plane_coplanarity(np.column_stack([xy, _true_apex_heights(f, m)]),
+                                          np.array([15.0, 12.0]),
+                                          reference=Plane.horizontal(0.0)).value
+    assert abs(m.coplanarity.value - truth_cop) < 2 * np.max(np.abs(m.height
+                                                                     - _true_apex_heights(f, m)))

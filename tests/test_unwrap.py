@@ -9,7 +9,6 @@ from telefringe.fringes.unwrap import (
     LadderError,
     absolute_unit_phase,
     decode_gray,
-    gray_bits_at,
     heterodyne_plan,
     number_theoretic_candidates,
     unwrap_gray,
@@ -148,12 +147,39 @@ def test_plain_gray_code_naive_rule_fails_where_ours_does_not():
     assert np.max(np.abs(res.phases[0][0] - 2 * np.pi * 32 * x / L)) < 1e-9
 
 
-def test_gray_bits_round_trip():
+# DESIGN.md: image j < n shows bit j (most significant first) of the Gray code of block
+# floor(x 2^n / L); with `complementary` one more image shows the least significant bit of
+# the Gray code of the half-blocks floor(x 2^(n+1) / L). Written out by hand (3-bit Gray
+# codes of blocks 0..7: 000 001 011 010 110 111 101 100; the LSB of the Gray code of the
+# half-block h is bit0(h) xor bit1(h): 0 1 1 0 0 1 1 0 ...):
+_GRAY_BY_HAND = [  # L = 800, 3 bits: blocks of 100 px, half-blocks of 50 px
+    # x,  bits MSB first, complementary bit
+    (0, (0, 0, 0), 0), (49, (0, 0, 0), 0), (50, (0, 0, 0), 1), (99, (0, 0, 0), 1),
+    (100, (0, 0, 1), 1), (150, (0, 0, 1), 0), (250, (0, 1, 1), 1), (399, (0, 1, 0), 0),
+    (400, (1, 1, 0), 0), (650, (1, 0, 1), 1), (799, (1, 0, 0), 0),
+]
+
+
+def test_gray_code_bits_follow_the_design_definition():
+    x = np.array([r[0] for r in _GRAY_BY_HAND])
+    bits = np.array([r[1] for r in _GRAY_BY_HAND]).T
+    comp = np.array([r[2] for r in _GRAY_BY_HAND])
+    got = gray_code_bits(x, bits=3, length=800, complementary=True)
+    assert got.shape == (4, x.size) and got.dtype == np.uint8
+    assert np.array_equal(got[:3], bits) and np.array_equal(got[3], comp)
+    assert np.array_equal(gray_code_bits(x, bits=3, length=800, complementary=False), bits)
+    # a length that is not a multiple of 2^bits: L = 600, 2 bits, blocks 0..3 = 00 01 11 10
+    # from x = 0, 150, 300, 450 (149 * 4 / 600 = 0.993 is still block 0)
+    got = gray_code_bits(np.array([0, 149, 150, 299, 300, 449, 450, 599]), bits=2,
+                         length=600, complementary=False)
+    assert np.array_equal(got.T, [[0, 0], [0, 0], [0, 1], [0, 1], [1, 1], [1, 1], [1, 0],
+                                  [1, 0]])
+
+
+def test_decode_gray_reads_the_block_index():
     x = np.arange(L)
     for comp in (False, True):
-        bits = gray_bits_at(x, bits=4, length=L, complementary=comp)
         ref = gray_code_bits(x, bits=4, length=L, complementary=comp).astype(bool)
-        assert np.array_equal(bits, ref)
         imgs = np.where(ref, 200.0, 20.0)
         code = decode_gray(imgs, np.full(L, 110.0))
         expect = (x * 2 ** (4 + comp) // L)

@@ -57,9 +57,10 @@ class WrappedPhase:
     background : (rows, cols) ndarray of float64, A in DN.
     quadrature : (rows, cols) ndarray of float64 or None, DN: the samples' mean weighted by
         their phase sensitivity, ``(2/N) sum_k I_k sin^2(phi + offset + d_k)``. The phase
-        noise is ``sqrt(2/N) sigma_I / B`` with sigma_I evaluated at this level (it equals
-        A for a pure sinusoid; a peaky, gamma-distorted fringe is darker where the phase
-        is read, hence less shot noise).
+        noise is ``sqrt(2/N) sigma_I / B`` with sigma_I evaluated at this level. For a pure
+        sinusoid it equals A when N >= 4 and ``A - (B/2) cos(3 (phi + offset))`` when
+        N = 3; a peaky, gamma-distorted fringe is darker where the phase is read, hence
+        less shot noise.
     """
 
     phase: np.ndarray

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from telefringe.fringes.patterns import gray_code_bits
+
 __all__ = [
     "LadderError",
     "Unwrapped",
@@ -31,7 +33,6 @@ __all__ = [
     "number_theoretic_candidates",
     "unwrap_number_theoretic",
     "decode_gray",
-    "gray_bits_at",
     "unwrap_gray",
 ]
 
@@ -443,19 +444,6 @@ def decode_gray(images, threshold) -> GrayCode:
     return GrayCode(index=index, bits=bits, contrast=contrast)
 
 
-def gray_bits_at(x, *, bits: int, length: int, complementary: bool) -> np.ndarray:
-    """Expected bits (bool, (bits [+1], ...)) of the Gray-code patterns at projector
-    coordinate(s) x (float, pixels; rounded to the nearest pixel centre)."""
-    x = np.clip(np.round(np.asarray(x, dtype=float)), 0, length - 1)
-    block = np.floor(x * 2 ** bits / length).astype(np.int64)
-    gray = block ^ (block >> 1)
-    out = [((gray >> (bits - 1 - j)) & 1).astype(bool) for j in range(bits)]
-    if complementary:
-        half = np.floor(x * 2 ** (bits + 1) / length).astype(np.int64)
-        out.append(((half ^ (half >> 1)) & 1).astype(bool))
-    return np.stack(out)
-
-
 def _block_edges(block, periods, length):
     """Phases of the left and right edges of block(s) b: block b covers the projector
     pixels with ``floor(x periods / L) = b``, i.e. x from ``ceil(b L / p) - 0.5``."""
@@ -563,7 +551,9 @@ def unwrap_gray(phase, images, threshold, *, bits: int, complementary: bool, len
     tol = min(2.0, length / periods / 4.0)
     mismatch = clear.copy()
     for dx in (-tol, -0.5 * tol, 0.0, 0.5 * tol, tol):
-        expect = gray_bits_at(x + dx, bits=bits, length=length, complementary=complementary)
+        xr = np.clip(np.round(x + dx), 0, length - 1)  # the nearest projector pixel
+        expect = gray_code_bits(xr, bits=bits, length=length,
+                                complementary=complementary).astype(bool)
         mismatch &= expect != code.bits
     bad = np.any(mismatch, axis=0) | ambiguous
     bad |= (x < -0.5) | (x >= length - 0.5)
