@@ -10,7 +10,7 @@ __all__ = ["as_rig"]
 
 def as_rig(rig) -> Rig:
     """``rig`` if it is a :class:`~telefringe.devices.rig.Rig`, else its ``.rig`` if that
-    is one (e.g. the RigCalibration that ``telefringe.io.rig.load_rig`` returns); nothing
+    is one (e.g. the RigCalibration that ``telefringe.io.rig_json.load_rig`` returns); nothing
     else is taken (no duck typing of ``camera`` / ``projector``): raises
     :class:`TriangulationError`."""
     if isinstance(rig, Rig):
@@ -23,6 +23,6 @@ def as_rig(rig) -> Rig:
         what += f" whose .rig is a {type(inner).__name__}"
     raise TriangulationError(
         f"expected a telefringe.devices.rig.Rig, or an object whose .rig is one (e.g. the "
-        f"RigCalibration of telefringe.io.rig.load_rig), got {what}")
+        f"RigCalibration of telefringe.io.rig_json.load_rig), got {what}")
 
 
