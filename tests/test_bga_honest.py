@@ -11,8 +11,10 @@ import pytest
 from test_metrology import bga_cloud
 
 import telefringe.metrology.bga.psf as psf
-from telefringe.io.export import _bga_map_figure, bga_summary, write_bga_csv
+from telefringe.io.bga_csv import write_bga_csv
+from telefringe.io.figures.bga_png import _bga_map_figure
 from telefringe.io.jsonable import write_json
+from telefringe.io.reports import bga_summary
 from telefringe.metrology import (
     NOT_MEASURED_REASONS,
     BGANominal,

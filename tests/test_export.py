@@ -8,8 +8,9 @@ import json
 import numpy as np
 import pytest
 
+from telefringe.io.bga_csv import write_bga_csv
 from telefringe.io.errors import InputError
-from telefringe.io.export import write_bga_csv, write_bga_png
+from telefringe.io.figures.bga_png import write_bga_png
 from telefringe.io.figures.heightmap_png import write_height_png
 from telefringe.io.jsonable import to_jsonable, write_json
 from telefringe.io.ply import write_ply

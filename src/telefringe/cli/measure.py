@@ -185,7 +185,9 @@ def bga_cmd(
 
     Example: telefringe measure bga bga_3d --rows 24 --cols 24 --json bga.json
     """
-    from telefringe.io.export import bga_summary, write_bga_csv, write_bga_png
+    from telefringe.io.bga_csv import write_bga_csv
+    from telefringe.io.figures.bga_png import write_bga_png
+    from telefringe.io.reports import bga_summary
 
     out = Path(out)
     csv_path = out / "bga.csv" if csv_path is None else csv_path

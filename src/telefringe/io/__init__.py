@@ -9,9 +9,9 @@ One module per format (see docs/formats.md):
 - ``coords_npz``: decoded projector coordinates; ``points_npz``: point clouds;
   ``ply``: ``cloud.ply``; ``tiff``: float height maps + sidecar JSON;
   ``reconstruction_folder``: everything a reconstruction leaves;
-- ``reports``: JSON-ready summaries of results; ``jsonable``: the one converter of results
-  to JSON values; ``export``: the BGA's CSV, map and summary;
-- ``figures``: one module per figure (height-map preview, calibration report,
+- ``reports``: JSON-ready summaries of results (the BGA's included); ``jsonable``: the one
+  converter of results to JSON values; ``bga_csv``: the BGA's per-ball table;
+- ``figures``: one module per figure (height-map preview, BGA map, calibration report,
   histograms of the paper re-run);
 - ``atomic``: writes that leave a complete file or nothing; ``errors``: ``InputError``.
 

@@ -1,5 +1,5 @@
-"""Compact summaries of results: JSON-ready dicts without per-point arrays (the BGA's is
-in :mod:`telefringe.io.export`)."""
+"""Compact summaries of results: JSON-ready dicts without per-point arrays (the BGA's
+keeps its per-ball arrays)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 from telefringe.io.jsonable import number_or_none as _f
 from telefringe.io.jsonable import to_jsonable
 
-__all__ = ["cloud_summary", "plane_summary", "plate_summary", "sphere_summary",
+__all__ = ["bga_summary", "cloud_summary", "plane_summary", "plate_summary", "sphere_summary",
            "steps_summary", "paper_result_to_json"]
 
 
@@ -134,4 +134,38 @@ def paper_result_to_json(result) -> dict:
             "valid_fraction_ball_pixels": b.valid_fraction_balls,
         },
         "timings_s": {k: float(v) for k, v in result.timings.items()},
+    }
+
+
+def bga_summary(m) -> dict:
+    """A :class:`telefringe.metrology.BGAMeasurement` (per-ball arrays included)."""
+    fin = np.concatenate([np.asarray(m.pitch_x)[np.isfinite(m.pitch_x)],
+                          np.asarray(m.pitch_y)[np.isfinite(m.pitch_y)]])
+    nom = m.nominal
+    return {
+        "nominal": {"rows": int(nom.rows), "cols": int(nom.cols), "pitch_mm": _f(nom.pitch_mm),
+                    "ball_diameter_mm": _f(nom.ball_diameter_mm)},
+        "balls_found": int(m.n_balls), "missing": [list(x) for x in m.missing],
+        "balls_not_measured": len(m.not_measured),
+        "not_measured": [{"index": [int(i), int(j)], "reason": why}
+                         for (i, j), why in m.not_measured],
+        "unexpected": [list(x) for x in m.unexpected],
+        "coplanarity_mm": _f(m.coplanarity.value),
+        "seating_contacts": [list(map(int, m.index[k])) for k in m.coplanarity.contacts],
+        "height_mean_mm": _f(np.mean(m.height)), "height_min_mm": _f(np.min(m.height)),
+        "height_max_mm": _f(np.max(m.height)),
+        "diameter_mean_mm": (_f(np.nanmean(m.diameter)) if np.any(np.isfinite(m.diameter))
+                             else None),
+        "diameters_measured": int(np.count_nonzero(np.isfinite(m.diameter))),
+        "pitch_mean_mm": _f(np.mean(fin)) if fin.size else None,
+        "pitch_std_mm": _f(np.std(fin, ddof=1)) if fin.size > 1 else None,
+        "pitch_error_max_mm": _f(m.pitch_error_max),
+        "grid_angle_deg": _f(m.grid_angle_deg),
+        "psf_variance_mm2": _f(m.psf_variance), "sigma_psf_variance_mm2": _f(m.sigma_psf_variance),
+        "psf_balls": int(m.psf_balls), "psf_converged": m.psf_converged,
+        "substrate": plane_summary(m.substrate),
+        "balls": {"index": to_jsonable(m.index), "height_mm": to_jsonable(m.height),
+                  "sigma_height_mm": to_jsonable(m.sigma_height),
+                  "diameter_mm": to_jsonable(m.diameter), "centre_mm": to_jsonable(m.centre),
+                  "apex_mm": to_jsonable(m.apex)},
     }

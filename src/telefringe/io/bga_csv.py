@@ -1,0 +1,66 @@
+"""``bga.csv``: one row per grid position of a BGA measurement (see docs/formats.md),
+written atomically; an existing file is replaced only with ``force``."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from telefringe.io.atomic import atomic_file
+
+__all__ = ["write_bga_csv"]
+
+
+_BGA_COLUMNS = ("row", "col", "status", "x_mm", "y_mm", "z_mm", "apex_x_mm", "apex_y_mm",
+                "apex_z_mm", "height_mm", "sigma_height_mm", "diameter_mm", "pos_x_mm",
+                "pos_y_mm", "dx_mm", "dy_mm", "coplanarity_mm", "seating_contact", "fit_rms_mm",
+                "n_points", "reason")
+
+
+def write_bga_csv(path, m, *, force: bool = False) -> Path:
+    """One row per grid position of a :class:`telefringe.metrology.BGAMeasurement`.
+
+    ``status`` is ``ok``, ``not_measured`` (a ball is seen there but could not be
+    measured: ``reason`` says why, see
+    :data:`telefringe.metrology.bga.result.NOT_MEASURED_REASONS`), ``missing`` (populated
+    position where no ball is seen) or ``unexpected`` (a ball where the nominal grid has
+    none); positions that are empty as they should be are left out. Columns: grid
+    ``row``, ``col``; sphere centre ``x/y/z_mm`` and apex
+    ``apex_*_mm`` (world); ``height_mm`` (apex above the substrate plane) and its
+    ``sigma_height_mm``; ``diameter_mm``; ``pos_*_mm`` (centre in the grid frame) and
+    ``dx/dy_mm`` (its offset from the nominal position); ``coplanarity_mm`` (distance of the
+    apex from the JEDEC seating plane); ``seating_contact`` (1 for the balls the package
+    rests on); ``fit_rms_mm``; ``n_points``; ``reason`` (empty unless not measured).
+    """
+    pitch = m.nominal.pitch_mm
+    contacts = set(int(k) for k in m.coplanarity.contacts)
+    by_pos = {(int(i), int(j)): k for k, (i, j) in enumerate(m.index)}
+    unexpected = set(m.unexpected)
+    populated = m.nominal.populated()
+    not_measured = dict(m.not_measured)
+    blank = [""] * (len(_BGA_COLUMNS) - 4)
+    rows = []
+    for i in range(m.nominal.rows):
+        for j in range(m.nominal.cols):
+            k = by_pos.get((i, j))
+            if k is None:
+                if (i, j) in not_measured:
+                    rows.append([i, j, "not_measured", *blank, not_measured[(i, j)]])
+                elif populated[i, j]:
+                    rows.append([i, j, "missing", *blank, ""])
+                continue
+            status = "unexpected" if (i, j) in unexpected else "ok"
+            c, a = m.centre[k], m.apex[k]
+            px, py = m.position[k]
+            rows.append([i, j, status, *(f"{v:.6f}" for v in c), *(f"{v:.6f}" for v in a),
+                         f"{m.height[k]:.6f}", f"{m.sigma_height[k]:.6f}",
+                         f"{m.diameter[k]:.6f}", f"{px:.6f}", f"{py:.6f}",
+                         f"{px - j * pitch:.6f}", f"{py - i * pitch:.6f}",
+                         f"{m.coplanarity.distances[k]:.6f}", int(k in contacts),
+                         f"{m.rms[k]:.6f}", int(m.n_points[k]), ""])
+    path = Path(path)
+    with atomic_file(path, force=force) as tmp, open(tmp, "w", newline="") as f:
+        wr = csv.writer(f)
+        wr.writerow(_BGA_COLUMNS)
+        wr.writerows(rows)
+    return path
