@@ -1,5 +1,5 @@
-"""Shared helpers of the metrology package: the error type, robust constants,
-the tangent basis of a plane, frozen copies of arrays."""
+"""Shared helpers of the metrology package: the error type, robust constants, points and
+weights from a cloud or an array, the tangent basis of a plane, frozen copies of arrays."""
 
 from __future__ import annotations
 
@@ -11,6 +11,40 @@ _TUKEY_C = 4.685  # Tukey biweight tuning constant (95 % efficiency at the Gauss
 
 class MetrologyError(ValueError):
     """A measurement cannot be made from this input (too few points, degenerate shape)."""
+
+
+def _points_and_weights(points, weights, *, sigma_weights: bool = False):
+    """The points of a fit and their weights.
+
+    ``points``: a PointCloud (its valid points) or an (n, 3) array (rows with a non-finite
+    coordinate are left out). ``weights``: (n,) or None; None gives unit weights, or with
+    ``sigma_weights`` and a cloud, ``1 / sigma_z**2`` per point: a point whose sigma is
+    not finite and positive gets weight 0 (it does not take part), and only when no point
+    has one are all weighted equally.
+
+    Returns (p (n, 3) float64, w (n,) float64, finite (n,) bool: usable coordinates).
+    Raises MetrologyError for a wrong shape.
+    """
+    from telefringe.reconstruction.cloud import PointCloud
+
+    if isinstance(points, PointCloud):
+        p = points.points()
+        finite = np.ones(p.shape[0], dtype=bool)
+        if weights is None and sigma_weights:
+            s = points.sigma_z[points.mask]
+            good = np.isfinite(s) & (s > 0)
+            if good.any():
+                weights = np.where(good, 1.0 / np.where(good, s, 1.0) ** 2, 0.0)
+    else:
+        p = np.asarray(points, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise MetrologyError(f"points must have shape (n, 3), got {p.shape}")
+        finite = np.all(np.isfinite(p), axis=1)
+    n = p.shape[0]
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+    if w.shape != (n,):
+        raise MetrologyError(f"weights must have {n} values, got {w.size}")
+    return p, w, finite
 
 
 def _freeze(obj, *names):

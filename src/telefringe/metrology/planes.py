@@ -6,8 +6,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from telefringe.metrology._common import _MAD, _TUKEY_C, MetrologyError, _freeze, _tangent_basis
-from telefringe.reconstruction.cloud import PointCloud
+from telefringe.metrology._common import (
+    _MAD,
+    _TUKEY_C,
+    MetrologyError,
+    _freeze,
+    _points_and_weights,
+    _tangent_basis,
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -147,7 +153,9 @@ def fit_plane(points, *, weights=None, robust: bool = False, seed: int = 0,
         Non-finite rows are ignored.
     weights : (n,) array_like of float, optional
         Relative weights (e.g. 1 / sigma_z^2); the uncertainty is scaled by the
-        residuals, so only their ratios matter.
+        residuals, so only their ratios matter. For a PointCloud the default is
+        1 / sigma_z^2 per point (a point without a finite, positive sigma_z is left out;
+        only a cloud with no sigma at all is fitted unweighted).
     robust : bool
         Least median of squares start (random triples from ``seed``, breakdown point
         50 %), then Tukey-biweight iteratively reweighted least squares; points with zero
@@ -164,26 +172,9 @@ def fit_plane(points, *, weights=None, robust: bool = False, seed: int = 0,
     MetrologyError
         Fewer than 3 points, collinear points, or fewer than 3 inliers.
     """
-    if isinstance(points, PointCloud):
-        p = points.points()
-        if weights is None:
-            s = points.sigma_z[points.mask]
-            if np.all(np.isfinite(s) & (s > 0)):
-                weights = 1.0 / s**2
-        finite = np.ones(p.shape[0], dtype=bool)
-    else:
-        p = np.asarray(points, dtype=np.float64)
-        if p.ndim != 2 or p.shape[1] != 3:
-            raise MetrologyError(f"points must have shape (n, 3), got {p.shape}")
-        finite = np.all(np.isfinite(p), axis=1)
+    p, w0, finite = _points_and_weights(points, weights, sigma_weights=True)
     n_all = p.shape[0]
-    if weights is None:
-        w0 = np.ones(n_all)
-    else:
-        w0 = np.asarray(weights, dtype=np.float64).reshape(-1)
-        if w0.shape[0] != n_all:
-            raise MetrologyError(f"weights must have {n_all} values, got {w0.shape[0]}")
-        finite &= np.isfinite(w0) & (w0 >= 0)
+    finite &= np.isfinite(w0) & (w0 >= 0)
     pf = p[finite]
     wf = w0[finite]
     if pf.shape[0] < 3 or np.count_nonzero(wf) < 3:

@@ -7,7 +7,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from telefringe.metrology._common import _MAD, MetrologyError, _components, _freeze
+from telefringe.metrology._common import (
+    _MAD,
+    MetrologyError,
+    _components,
+    _freeze,
+    _points_and_weights,
+)
 from telefringe.metrology.planes import PlaneFit, _tls_plane, fit_plane
 from telefringe.reconstruction.cloud import PointCloud
 
@@ -157,18 +163,8 @@ def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 
     MetrologyError
         Fewer than 4 points, coplanar points, or a fit that does not converge.
     """
-    if isinstance(points, PointCloud):
-        p = points.points()
-        finite = np.ones(p.shape[0], dtype=bool)
-    else:
-        p = np.asarray(points, dtype=np.float64)
-        if p.ndim != 2 or p.shape[1] != 3:
-            raise MetrologyError(f"points must have shape (n, 3), got {p.shape}")
-        finite = np.all(np.isfinite(p), axis=1)
+    p, w0, finite = _points_and_weights(points, weights)
     n_all = p.shape[0]
-    w0 = np.ones(n_all) if weights is None else np.asarray(weights, dtype=np.float64)
-    if w0.shape != (n_all,):
-        raise MetrologyError(f"weights must have {n_all} values")
     finite &= np.isfinite(w0) & (w0 > 0)
     idx = np.flatnonzero(finite)
     if idx.size < 4:
