@@ -21,7 +21,8 @@ from telefringe.fringes.decode import decode
 from telefringe.fringes.images import fringe_free_image
 from telefringe.simulate.calibration import iter_calibration_set, simulate_calibration_poses
 from telefringe.simulate.presets import get_preset
-from telefringe.targets.circle_grid import detect_circle_grid, projector_observations
+from telefringe.targets.circle_grid import detect_circle_grid
+from telefringe.targets.observations import projector_observations
 
 
 def main() -> None:

@@ -28,7 +28,8 @@ from telefringe.simulate.calibration import iter_calibration_set, simulate_calib
 from telefringe.simulate.presets import get_preset
 from telefringe.simulate.render import default_groups, render_scan
 from telefringe.simulate.scenes import plate_from_target
-from telefringe.targets.circle_grid import detect_circle_grid, projector_observations
+from telefringe.targets.circle_grid import detect_circle_grid
+from telefringe.targets.observations import projector_observations
 
 pytestmark = pytest.mark.slow
 DECODE = {"gamma_correction": False}

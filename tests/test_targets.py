@@ -13,15 +13,14 @@ from scipy.ndimage import gaussian_filter
 
 from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
 from telefringe.geometry.so3 import rotation_from_rotvec
-from telefringe.targets.circle_grid import (
-    GridDetection,
+from telefringe.targets.circle_grid import GridDetection, detect_circle_grid
+from telefringe.targets.ellipse import (
     _blurred_ellipse,
     _normal_equations,
     _normal_equations_py,
-    detect_circle_grid,
     fit_ellipse,
-    projector_observations,
 )
+from telefringe.targets.observations import projector_observations
 
 ROWS, COLS, PITCH, DIAM = 9, 11, 3.0, 1.5
 

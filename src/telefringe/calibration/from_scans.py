@@ -49,7 +49,8 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
     """
     from telefringe.fringes.decode import decode
     from telefringe.fringes.images import fringe_free_image
-    from telefringe.targets.circle_grid import detect_circle_grid, projector_observations
+    from telefringe.targets.circle_grid import detect_circle_grid
+    from telefringe.targets.observations import projector_observations
 
     rows, cols = int(target.rows), int(target.cols)
     r, c = np.mgrid[0:rows, 0:cols]
