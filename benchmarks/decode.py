@@ -150,7 +150,7 @@ _PEER = textwrap.dedent(r'''
 _MEMORY = textwrap.dedent(r'''
     import sys, tracemalloc
     import numpy as np
-    from telefringe.fringes.decode import decode_axis_fast
+    from telefringe.fringes.fast import decode_axis_fast
     stacks = [np.load(p) for p in sys.argv[1:4]]
     decode_axis_fast([s[:, :16, :16].copy() for s in stacks], (1, 8, 64), 4,
                      length=800)  # load the cached kernel
@@ -165,7 +165,7 @@ _ASM = textwrap.dedent(r'''
     import re
     import numpy as np
     from telefringe import _kernels as _k
-    from telefringe.fringes.decode import decode_axis_fast
+    from telefringe.fringes.fast import decode_axis_fast
     st = [np.zeros((4, 8, 8), np.uint8) for _ in range(3)]
     decode_axis_fast(st, (1, 8, 64), 4, length=800)
     asm = "\n".join(_k.fused_ladder.inspect_asm().values())
@@ -192,7 +192,8 @@ def main() -> None:
     import numba
 
     from telefringe.fringes import _kernels as _k
-    from telefringe.fringes.decode import decode, decode_axis_fast
+    from telefringe.fringes.decode import decode
+    from telefringe.fringes.fast import decode_axis_fast
     from telefringe.fringes.nonlinearity import PhaseErrorModel
     from telefringe.fringes.scan import PhaseGroup, Scan, ScanManifest
 

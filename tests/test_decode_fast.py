@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from telefringe.fringes import _kernels as _k
-from telefringe.fringes.decode import DecodeError, decode, decode_axis_fast
+from telefringe.fringes.decode import decode
+from telefringe.fringes.errors import DecodeError
+from telefringe.fringes.fast import decode_axis_fast
 from telefringe.fringes.nonlinearity import PhaseErrorModel
 from telefringe.fringes.phase import NoiseModel
 from telefringe.fringes.scan import PhaseGroup, Scan, ScanManifest
@@ -77,7 +79,7 @@ def test_float32_table_correction_matches_exact_interpolation():
     PhaseErrorModel(8, (3, 6, 9), np.array([0.05, -0.01, 0.003]),
                     np.array([-0.12, 0.02, -0.004]))])
 def test_series_correction_matches_the_exact_inverse(model):
-    from telefringe.fringes.decode import _model_tables
+    from telefringe.fringes.fast import _model_tables
 
     a, b, c0, d = _model_tables(model, 1)[2]
     # sums S, C of 8-bit 4-step data at every angle (radius 20 to 510 DN)
@@ -273,7 +275,7 @@ def test_table_cache_is_thread_safe_and_bounded(monkeypatch):
     import sys
     import threading
 
-    from telefringe.fringes import decode as dec
+    from telefringe.fringes import fast as dec
 
     models = [PhaseErrorModel(8, (1, 2), np.array([0.01 * (i + 1), 0.0]),
                               np.array([0.0, 0.005])) for i in range(12)]

@@ -1,0 +1,309 @@
+"""The fast path of the decoder: the fused compiled kernel (wrapped phase, HDR fusion,
+hierarchical unwrapping and the nonlinearity correction in one pass, float32 where that
+is exact or bounded by tests), its cached correction tables, and ``decode_axis_fast``.
+:func:`telefringe.fringes.decode.decode` uses it for every stack it can fuse."""
+
+from __future__ import annotations
+
+import collections
+import functools
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from telefringe.fringes.errors import DecodeError, LadderDecodeError
+from telefringe.fringes.nonlinearity import PhaseErrorModel
+from telefringe.fringes.phase import NoiseModel
+
+__all__ = ["FastCoordinates", "decode_axis_fast"]
+
+TWO_PI = 2.0 * np.pi
+
+
+@dataclass(frozen=True)
+class FastCoordinates:
+    """Result of :func:`decode_axis_fast` (arrays (rows, cols)).
+
+    Attributes
+    ----------
+    coordinate : float64 (or float32), projector pixels, NaN where invalid.
+    mask : bool.
+    modulation : float64, DN, of the finest group.
+    """
+
+    coordinate: np.ndarray
+    mask: np.ndarray
+    modulation: np.ndarray
+
+
+#: the correction tables of recent models, least recently used first; bounded in entries
+#: and in bytes (a table has up to 2^20 entries: 16 MB with its noise factors), guarded by
+#: a lock (decode runs in threads, e.g. under a Dask threaded scheduler)
+_TABLE_CACHE: collections.OrderedDict = collections.OrderedDict()
+_TABLE_CACHE_LOCK = threading.Lock()
+_TABLE_CACHE_MAX_ENTRIES = 64
+_TABLE_CACHE_MAX_BYTES = 64 * 2 ** 20
+
+
+def _table_bytes(value) -> int:
+    g, nf, series = value
+    return g.nbytes + nf.nbytes + (0 if series is None else series[0].nbytes
+                                   + series[1].nbytes)
+
+
+def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Correction table g (float64, the measured phase minus the true one), noise-factor
+    table ``1 / (1 + e')`` (float64) of ``model`` on the grid ``-pi + 2 pi j / n``, with n
+    (>= n_min, from 4096 by factors of 4) the first size whose linear interpolation error,
+    checked at every mid-point against the exact inverse, is <= 1e-8 rad, and g as a
+    Fourier series (:func:`_series`). Cached (thread-safe, at most
+    ``_TABLE_CACHE_MAX_ENTRIES`` models and ``_TABLE_CACHE_MAX_BYTES``, least recently
+    used evicted first); the arrays are read-only."""
+    key = (model.periods, tuple(model.harmonics), np.asarray(model.cos_coef).tobytes(),
+           np.asarray(model.sin_coef).tobytes(), int(n_min))
+    with _TABLE_CACHE_LOCK:
+        hit = _TABLE_CACHE.get(key)
+        if hit is not None:
+            _TABLE_CACHE.move_to_end(key)
+            return hit
+    # (computed outside the lock: two threads may build the same tables, equal ones)
+    n = 4096
+    while True:
+        g, err = model.correction_table(n)
+        if n >= n_min and (err <= 1e-8 or n >= 2 ** 20):
+            break
+        n *= 4
+    grid = -np.pi + TWO_PI * np.arange(n) / n
+    nf = np.array(model.noise_factor(grid), dtype=np.float64)
+    value = (g, nf, _series(g))
+    for arr in (g, nf, *(() if value[2] is None else value[2][:2])):
+        arr.flags.writeable = False
+    with _TABLE_CACHE_LOCK:
+        _TABLE_CACHE[key] = value
+        _TABLE_CACHE.move_to_end(key)
+        total = sum(_table_bytes(v) for v in _TABLE_CACHE.values())
+        while len(_TABLE_CACHE) > 1 and (len(_TABLE_CACHE) > _TABLE_CACHE_MAX_ENTRIES
+                                         or total > _TABLE_CACHE_MAX_BYTES):
+            _, old = _TABLE_CACHE.popitem(last=False)
+            total -= _table_bytes(old)
+    return value
+
+
+#: the Fourier series of a correction may drop terms summing to at most this (rad)
+SERIES_TAIL = 1e-7
+SERIES_MAX_TERMS = 48
+
+
+def _series(g: np.ndarray):
+    """The correction table ``g`` (samples at ``-pi + 2 pi j / M``) as a Fourier series in
+    harmonics of one order step d: ``g(phi) = c0 + sum_t a[t-1] cos(t d phi) + b[t-1]
+    sin(t d phi)``, its dropped terms summing to <= SERIES_TAIL rad; None when that needs
+    more than SERIES_MAX_TERMS terms (the kernel then interpolates the table).
+
+    Returns (a, b, c0, d) or None.
+    """
+    m = g.size
+    k = np.arange(m // 2 + 1)
+    coef = np.fft.rfft(g) / m * np.where(k % 2 == 0, 1.0, -1.0)  # grid starts at -pi
+    a, b = 2.0 * coef.real, -2.0 * coef.imag
+    c0 = coef[0].real
+    mag = np.abs(a) + np.abs(b)
+    mag[0] = 0.0
+    order = np.argsort(mag)
+    tail = np.cumsum(mag[order])
+    kept = mag > 0
+    kept[order[tail <= SERIES_TAIL]] = False  # the smallest terms, their sum within the bound
+    keep = np.nonzero(kept)[0]
+    if keep.size == 0:
+        return np.zeros(1), np.zeros(1), c0, 1
+    d = int(np.gcd.reduce(keep))
+    n = int(keep.max()) // d
+    if n > SERIES_MAX_TERMS or keep.max() >= m // 4:
+        return None
+    idx = d * np.arange(1, n + 1)
+    return a[idx], b[idx], c0, d
+
+
+_EXACT_WEIGHTS = (0.0, 0.5, -0.5, 1.0, -1.0)
+_MAX_MEMBERS = 16  # phase groups (exposures included) per axis in the fused kernel
+
+
+@functools.lru_cache(maxsize=64)
+def _weights(steps: int, offset: float):
+    """N-step weights (cos, sin, second-harmonic cos, sin; read-only) and whether they are
+    all 0, +-1/2 or +-1."""
+    from telefringe.fringes.phase import phase_shift_coefficients
+
+    c, s = phase_shift_coefficients(steps, offset)
+    c2, s2 = phase_shift_coefficients(steps, 2.0 * offset, harmonic=2)
+    for arr in (c, s, c2, s2):
+        arr.flags.writeable = False
+    exact = bool(np.all(np.isin(c, _EXACT_WEIGHTS)) and np.all(np.isin(s, _EXACT_WEIGHTS)))
+    return c, s, c2, s2, exact
+
+
+def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, min_mod: float,
+           max_residual: float, models=None, full: bool, noise: NoiseModel | None = None,
+           dtype=np.float64, block_rows: int = 4, tile: int = 512) -> dict:
+    """Run the fused kernel (telefringe._kernels.fused_ladder) over a hierarchical ladder.
+
+    levels : list (sorted by periods, first one period) of lists of (stack, exposure), the
+    group's exposures (any order). periods, steps, offsets : per level. models : per level
+    PhaseErrorModel or None. Returns the output arrays by name.
+    """
+    from telefringe.fringes import _kernels as _k
+
+    n_lev = len(levels)
+    members = []
+    lev_first = [0]
+    for lv in levels:
+        members.extend(sorted(lv, key=lambda se: -se[1]))  # longest exposure first
+        lev_first.append(len(members))
+    n_mem = len(members)
+    mem_steps = [steps[i] for i in range(n_lev) for _ in levels[i]]
+    mem_off = [offsets[i] for i in range(n_lev) for _ in levels[i]]
+    k4 = 4 * ((max(steps) + 3) // 4)  # the kernel sums steps four at a time
+    sw, cw = np.zeros((n_mem, k4)), np.zeros((n_mem, k4))
+    s2w, c2w = np.zeros((n_mem, k4)), np.zeros((n_mem, k4))
+    stacks = []
+    dt = members[0][0].dtype
+    integer = dt.kind in "ui" and dt.itemsize <= 2
+    exact32 = np.zeros(n_mem, dtype=np.bool_)
+    for i, ((st, _), k, off) in enumerate(zip(members, mem_steps, mem_off, strict=True)):
+        c, s, c2, s2, exact = _weights(k, off)
+        cw[i, :k], sw[i, :k] = c, s
+        c2w[i, :k], s2w[i, :k] = c2, s2
+        # integer samples below 2^16, weights 0, +-1/2, +-1 and N <= 128: every partial
+        # sum is a multiple of 1/2 below 2^23, so the float32 sums are exact
+        exact32[i] = integer and k <= 128 and exact
+        stacks.append(np.ascontiguousarray(st))
+    m_tab = 1
+    use = [m is not None and bool(m.harmonics) for m in (models or [None] * n_lev)]
+    if any(use):
+        m_tab = max(_model_tables(m, 1)[0].size for m, u in zip(models, use, strict=True)
+                    if u)
+    tables = np.zeros((n_lev, m_tab), dtype=np.float32)
+    nf_tables = np.ones((n_lev, m_tab))
+    series = [None] * n_lev
+    for i, u in enumerate(use):
+        if u:
+            g, nf, series[i] = _model_tables(models[i], m_tab)
+            tables[i], nf_tables[i] = g, nf
+    n_ser = max([len(s[0]) for s in series if s is not None] + [1])
+    ser_a = np.zeros((n_lev, n_ser), dtype=np.float32)
+    ser_b = np.zeros((n_lev, n_ser), dtype=np.float32)
+    ser_c0 = np.zeros(n_lev, dtype=np.float32)
+    ser_d = np.ones(n_lev, dtype=np.int64)
+    ser_n = np.ones(n_lev, dtype=np.int64)
+    has_series = np.zeros(n_lev, dtype=np.bool_)
+    for i, s in enumerate(series):
+        if s is not None:
+            a, b, c0, d = s
+            ser_a[i, :a.size], ser_b[i, :b.size] = a, b
+            ser_c0[i], ser_d[i], ser_n[i], has_series[i] = c0, d, a.size, True
+    nst = np.asarray(steps, dtype=np.int64)
+    # thresholds on S^2 + C^2 (float32 in the kernel): the smallest float32 >= the exact
+    # value, so that m2 >= thr32 exactly when m2 >= thr
+    thr = (nst * float(min_mod) / 2.0) ** 2
+    min_mod2 = thr.astype(np.float32)
+    low = min_mod2.astype(np.float64) < thr
+    min_mod2[low] = np.nextafter(min_mod2[low], np.float32(np.inf))
+    shape = stacks[0].shape[1:]
+    one = (1, 1)
+    out = {"coordinate": np.empty(shape), "valid": np.empty(shape, dtype=bool),
+           "modulation": np.empty(shape)}
+    names = (("sigma", np.float64), ("background", np.float64), ("exposure", np.float64),
+             ("saturated", bool), ("low_modulation", bool), ("shadow", bool),
+             ("order_reliable", bool))
+    for name, t in names:
+        out[name] = np.empty(shape if full else one, dtype=t)
+    noise = noise if noise is not None else NoiseModel()
+    if n_mem > _MAX_MEMBERS:
+        raise DecodeError(f"the fused kernel takes at most {_MAX_MEMBERS} phase groups per "
+                          f"axis, got {n_mem}")
+    # pad the tuple to a fixed length: one compiled signature per dtype
+    pad = np.zeros((1, 1, 1), dtype=dt)
+    stacks += [pad] * (_MAX_MEMBERS - n_mem)
+    _k.fused_ladder(
+        tuple(stacks), np.asarray(lev_first, dtype=np.int64),
+        np.asarray([e for _, e in members], dtype=np.float64), exact32, nst,
+        sw.astype(np.float32), cw.astype(np.float32), sw, cw, s2w, c2w,
+        np.asarray(periods, dtype=np.float64), float(length), tables,
+        np.asarray(use, dtype=np.bool_) & ~has_series, nf_tables,
+        np.asarray(use, dtype=np.bool_), ser_a, ser_b, ser_c0, ser_d, ser_n, has_series,
+        float(max_value), min_mod2,
+        float(max_residual), bool(full), float(noise.read_noise ** 2 + noise.quantization ** 2),
+        float(noise.gain), int(block_rows), int(min(tile, max(shape[1], 1))),
+        out["coordinate"], out["valid"], out["modulation"],
+        *(out[name] for name, _ in names))
+    if dtype != np.float64:
+        out["coordinate"] = out["coordinate"].astype(dtype)
+    return out
+
+
+def decode_axis_fast(stacks, periods, steps, *, length: int, offsets=0.0,
+                     max_value: float = 255.0, min_modulation: float | None = None,
+                     max_residual: float = np.pi / 2, phase_errors=None,
+                     dtype=np.float64, block_rows: int = 4) -> FastCoordinates:
+    """One fused pass (numba, parallel, vectorised) from the images of a hierarchical
+    ladder to the projector coordinate, its mask and the modulation.
+
+    The same decoding as :func:`decode_axis` with the hierarchical method, single
+    exposure, except: the arctangent is a float32 polynomial (error <= 1e-6 rad, tested),
+    the groups are combined with weights ``(p B)^2`` (the same sigma_I for all groups of a
+    pixel), and no uncertainty or diagnostics are returned (``decode`` gives them, through
+    the same kernel). Memory: the outputs only.
+
+    Parameters
+    ----------
+    stacks : sequence of (N_g, rows, cols) ndarray (uint8, uint16 or float), one per group.
+    periods : sequence of int (one of them 1).  steps : int or sequence of int.
+    length : int, projector pixels along the axis.  offsets : float or sequence, rad.
+    max_value : float, saturation level (DN).  min_modulation : float, DN (default 2 % of
+        ``max_value``).  max_residual : float, rad.
+    phase_errors : PhaseErrorFit or sequence of PhaseErrorModel (one per group, input
+        order) or None: the nonlinearity correction to apply (e.g. learned once with
+        :func:`decode` or :func:`telefringe.gamma.fit_phase_errors` for a rig).
+    dtype : float64 or float32, of ``coordinate``.
+    block_rows : int, image rows per parallel task.
+
+    Returns
+    -------
+    FastCoordinates
+    """
+    stacks = list(stacks)
+    n = len(stacks)
+    per = [int(p) for p in periods]
+    if len(per) != n:
+        raise DecodeError(f"{n} stacks but {len(per)} periods")
+    st = [int(steps)] * n if np.ndim(steps) == 0 else [int(x) for x in steps]
+    off = [float(offsets)] * n if np.ndim(offsets) == 0 else [float(x) for x in offsets]
+    if len(st) != n or len(off) != n:
+        raise DecodeError("steps and offsets need one value per stack")
+    if len(set(per)) != n or min(per) != 1:
+        raise LadderDecodeError(f"the fast path needs a hierarchical ladder with a one-period "
+                                f"group and distinct periods, got {per}")
+    shape = stacks[0].shape[1:]
+    for s_, k in zip(stacks, st, strict=True):
+        if s_.ndim != 3 or s_.shape[0] != k or s_.shape[1:] != shape:
+            raise DecodeError(f"stack of shape {s_.shape} does not match steps {k} and image "
+                              f"shape {shape}")
+        if s_.dtype != stacks[0].dtype:
+            raise DecodeError("stacks differ in dtype")
+    if min(st) < 3:
+        raise DecodeError(f"steps must be >= 3, got {st}")
+    models = None
+    if phase_errors is not None:
+        models = list(getattr(phase_errors, "models", phase_errors))
+        if len(models) != n:
+            raise DecodeError("phase_errors needs one model per stack")
+    order = list(np.argsort(per))
+    min_mod = 0.02 * float(max_value) if min_modulation is None else float(min_modulation)
+    out = _fused([[(stacks[g], 1.0)] for g in order], [per[g] for g in order],
+                 [st[g] for g in order], [off[g] for g in order], length=length,
+                 max_value=max_value, min_mod=min_mod, max_residual=max_residual,
+                 models=None if models is None else [models[g] for g in order], full=False,
+                 dtype=dtype, block_rows=block_rows)
+    return FastCoordinates(coordinate=out["coordinate"], mask=out["valid"],
+                           modulation=out["modulation"])
