@@ -244,24 +244,24 @@ def calibrate_device(points_target, observations, *, pixel_size, image_size,
 
     def build(obs_list, sigmas, prev):
         if prev is None:
-            devs, Rp, Tp = [dev0], R0, T0
+            devs, R_dt, T_dt = [dev0], R0, T0
         else:
-            devs, Rp, Tp = prev[0].unpack(prev[1])
+            devs, R_dt, T_dt = prev[0].unpack(prev[1])
         sig = [1.0] if sigmas is None else sigmas
-        return BundleProblem(P, obs_list, devs, Rp, Tp, sigmas=sig, free=free,
+        return BundleProblem(P, obs_list, devs, R_dt, T_dt, sigmas=sig, free=free,
                              priors=priors, device_names=[name])
 
     problem, x, keeps, outliers, sigmas = _adjust_with_rejection(
         build, [obs], [used], threshold=outlier_threshold, max_rounds=max_rounds,
         names=[name], pose_names=pose_names, grid_shape=grid_shape)
     problem, x = problem.rebased(x)
-    devs, Rp, Tp = problem.unpack(x)
+    devs, R_dt, T_dt = problem.unpack(x)
     device = devs[0]
     n_t = len(device.pose_names) - 3
     R_all = np.full((n_poses, 3, 3), np.nan)
     t_all = np.full((n_poses, n_t), np.nan)
-    R_all[used] = Rp
-    t_all[used] = Tp[:, :n_t]
+    R_all[used] = R_dt
+    t_all[used] = T_dt[:, :n_t]
     o = problem.obs[0]
     res = np.full(obs.shape, np.nan)
     res[used[o.pose], o.point] = problem.predict(x, 0) - o.uv

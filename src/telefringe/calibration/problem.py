@@ -172,15 +172,15 @@ class BundleProblem:
         devs = [self.devices0[d].from_params(f[self.layout.device_slice(d)])
                 for d in range(self.n_dev)]
         pose = f[self.layout.n_device_params:].reshape(self.n_pose, 6)
-        Rp = np.array([rotation_from_rotvec(pose[i, :3]) @ self.poseR0[i]
+        R_wt = np.array([rotation_from_rotvec(pose[i, :3]) @ self.poseR0[i]
                        for i in range(self.n_pose)]).reshape(self.n_pose, 3, 3)
-        return devs, Rp, pose[:, 3:].copy()
+        return devs, R_wt, pose[:, 3:].copy()
 
     def predict(self, x, d: int) -> np.ndarray:
         """Predicted (u, v) (n, 2) px of device ``d``'s observations at ``x``."""
-        devs, Rp, Tp = self.unpack(x)
+        devs, R_wt, T_wt = self.unpack(x)
         o = self.obs[d]
-        X = np.einsum("nij,nj->ni", Rp[o.pose], self.P[o.point]) + Tp[o.pose]
+        X = np.einsum("nij,nj->ni", R_wt[o.pose], self.P[o.point]) + T_wt[o.pose]
         u, v = devs[d].project(X)
         return np.stack([u, v], axis=1)
 
@@ -188,7 +188,7 @@ class BundleProblem:
         if self._cache_x is not None and np.array_equal(x, self._cache_x):
             return self._cache
         f = self.full(x)
-        devs, Rp, Tp = self.unpack(x)
+        devs, R_wt, T_wt = self.unpack(x)
         pose = f[self.layout.n_device_params:].reshape(self.n_pose, 6)
         Jl_pose = np.array([left_jacobian(pose[i, :3]) for i in range(self.n_pose)])
         res, rows, cols, vals = [], [], [], []
@@ -199,15 +199,15 @@ class BundleProblem:
             n = o.pose.size
             if n == 0:
                 continue
-            RP = np.einsum("nij,nj->ni", Rp[o.pose], self.P[o.point])
-            uv, J_dev, J_X = devs[d].project_jacobian(RP + Tp[o.pose])
+            RP_world = np.einsum("nij,nj->ni", R_wt[o.pose], self.P[o.point])
+            uv, J_dev, J_X = devs[d].project_jacobian(RP_world + T_wt[o.pose])
             s = self.sigmas[d]
             res.append(((uv - o.uv) / s).ravel())
             blk = f[self.layout.device_slice(d)]
             rot = self._rot[d]
             # the device gives d/d(a fresh perturbation at R(dw) R0); chain it to dw
             J_dev[:, :, rot] = J_dev[:, :, rot] @ left_jacobian(blk[rot])
-            J_pw = J_X @ (-skew(RP)) @ Jl_pose[o.pose]
+            J_pw = J_X @ (-skew(RP_world)) @ Jl_pose[o.pose]
             blocks = np.concatenate([J_dev, J_pw, J_X], axis=2) / s
             nb = J_dev.shape[2]
             c_dev = self.layout.device_slice(d).start + np.arange(nb)
@@ -283,8 +283,8 @@ class BundleProblem:
 
     def rebased(self, x) -> tuple[BundleProblem, np.ndarray]:
         """The same problem with rotations re-centred at ``x`` (perturbations zero)."""
-        devs, Rp, Tp = self.unpack(x)
-        new = BundleProblem(self.P, self.obs, devs, Rp, Tp, sigmas=self.sigmas,
+        devs, R_wt, T_wt = self.unpack(x)
+        new = BundleProblem(self.P, self.obs, devs, R_wt, T_wt, sigmas=self.sigmas,
                             free=self.free, priors=self.priors,
                             device_names=self.layout.device_names)
         return new, new.x0

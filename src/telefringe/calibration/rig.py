@@ -219,20 +219,20 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
     if len(poses) < min_poses:
         raise CalibrationError(f"{len(poses)} pose(s) seen by both devices, at least "
                                f"{min_poses} needed")
-    Rc, Rp, R_pc, mirror, more = rig_rotations(
+    R_ct, R_pt, R_pc, mirror, more = rig_rotations(
         cal_c.device.model, cal_p.device.model, cal_c.R_dev_target[poses],
         cal_p.R_dev_target[poses], projector_side)
     warns += more
     # degenerate pose sets: every target normal (in the camera) nearly the same
-    normals = Rc[:, :, 2]
+    normals = R_ct[:, :, 2]
     spread = np.degrees(np.max(np.arccos(np.clip(normals @ normals[0], -1, 1))))
     if spread < 1.0:
         raise CalibrationError(
             f"the target has the same tilt in every pose (spread {spread:.2f} deg): depth "
             "cannot be calibrated; tilt the target in several directions")
-    R_cw = Rc[0]
+    R_cw = R_ct[0]
     R_pw = R_pc @ R_cw
-    R_wt = np.array([chordal_mean([R_cw.T @ Rc[j], R_pw.T @ Rp[j]])
+    R_wt = np.array([chordal_mean([R_cw.T @ R_ct[j], R_pw.T @ R_pt[j]])
                      for j in range(len(poses))])
     R_wt[0] = np.eye(3)
     t_c = cal_c.t_dev[poses]
@@ -273,8 +273,8 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
         if prev is None:
             return BundleProblem(P, obs_list, devs0, R_wt, T, sigmas=sig0, free=free,
                                  priors=priors, device_names=names_d)
-        devs, Rp, Tp = prev[0].unpack(prev[1])
-        return BundleProblem(P, obs_list, devs, Rp, Tp,
+        devs, R_wt_prev, T_wt_prev = prev[0].unpack(prev[1])
+        return BundleProblem(P, obs_list, devs, R_wt_prev, T_wt_prev,
                              sigmas=sig0 if sigmas is None else sigmas, free=free,
                              priors=priors, device_names=names_d)
 
@@ -283,7 +283,7 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
         max_rounds=max_rounds, names=list(names_d), pose_names=names,
         grid_shape=grid_shape)
     problem, x = problem.rebased(x)
-    devs, Rpose, Tpose = problem.unpack(x)
+    devs, R_wt_final, T_wt_final = problem.unpack(x)
     rig = Rig(camera=devs[0], projector=devs[1])
     residuals = []
     for d in range(2):
@@ -318,8 +318,8 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
                          "costs little accuracy")
     R_all = np.full((n_poses, 3, 3), np.nan)
     T_all = np.full((n_poses, 3), np.nan)
-    R_all[poses] = Rpose
-    T_all[poses] = Tpose
+    R_all[poses] = R_wt_final
+    T_all[poses] = T_wt_final
     used = np.zeros(n_poses, dtype=bool)
     used[poses] = True
     return RigCalibration(

@@ -181,26 +181,26 @@ def start_device(points_target, observations, *, pixel_size, image_size, princip
     return TelecentricDevice(intr), start, used, start.R_dev_target[used], T
 
 
-def choose_branches(Rc, Rp):
+def choose_branches(R_ct, R_pt):
     """Per pose mirror branch of camera and projector keeping R_proj_cam rigid.
 
-    ``Rc``, ``Rp``: (n, 3, 3) target -> device rotations from the single-device
-    calibrations (arbitrary branch). Returns the chosen (Rc, Rp) with the reference
+    ``R_ct``, ``R_pt``: (n, 3, 3) target -> device rotations from the single-device
+    calibrations (arbitrary branch). Returns the chosen (R_ct, R_pt) with the reference
     (index 0) camera branch kept, and the spread (max Frobenius distance) of R_proj_cam.
     """
-    n = Rc.shape[0]
+    n = R_ct.shape[0]
     best = None
     for q0 in (0, 1):
-        Rp0 = mirror_pose(Rp[0]) if q0 else Rp[0]
-        ref = Rp0 @ Rc[0].T
+        R_pt0 = mirror_pose(R_pt[0]) if q0 else R_pt[0]
+        ref = R_pt0 @ R_ct[0].T
         cost = 0.0
         choice = [(0, q0)]
         for i in range(1, n):
             cands = []
             for s in (0, 1):
                 for q in (0, 1):
-                    c = mirror_pose(Rc[i]) if s else Rc[i]
-                    p = mirror_pose(Rp[i]) if q else Rp[i]
+                    c = mirror_pose(R_ct[i]) if s else R_ct[i]
+                    p = mirror_pose(R_pt[i]) if q else R_pt[i]
                     cands.append((np.linalg.norm(p @ c.T - ref), s, q))
             dmin, s, q = min(cands)
             cost += dmin
@@ -208,9 +208,9 @@ def choose_branches(Rc, Rp):
         if best is None or cost < best[0]:
             best = (cost, choice)
     _, choice = best
-    Rc2 = np.array([mirror_pose(Rc[i]) if s else Rc[i] for i, (s, _) in enumerate(choice)])
-    Rp2 = np.array([mirror_pose(Rp[i]) if q else Rp[i] for i, (_, q) in enumerate(choice)])
-    return Rc2, Rp2
+    R_ct2 = np.array([mirror_pose(R_ct[i]) if s else R_ct[i] for i, (s, _) in enumerate(choice)])
+    R_pt2 = np.array([mirror_pose(R_pt[i]) if q else R_pt[i] for i, (_, q) in enumerate(choice)])
+    return R_ct2, R_pt2
 
 
 def mirror_needed(R_pc: np.ndarray, projector_side: str | None) -> bool:
@@ -247,10 +247,10 @@ def resolve_rotations(R_cam_target, R_proj_target, projector_side: str | None):
         "convention").
     warnings : list of str.
     """
-    Rc, Rp = choose_branches(np.asarray(R_cam_target), np.asarray(R_proj_target))
-    R_pc = chordal_mean(Rp @ np.transpose(Rc, (0, 2, 1)))
+    R_ct, R_pt = choose_branches(np.asarray(R_cam_target), np.asarray(R_proj_target))
+    R_pc = chordal_mean(R_pt @ np.transpose(R_ct, (0, 2, 1)))
     if mirror_needed(R_pc, projector_side):
-        Rc, Rp, R_pc = mirror_pose(Rc), mirror_pose(Rp), mirror_pose(R_pc)
+        R_ct, R_pt, R_pc = mirror_pose(R_ct), mirror_pose(R_pt), mirror_pose(R_pc)
     warns = []
     if projector_side is None:
         mirror = "convention"
@@ -260,4 +260,4 @@ def resolve_rotations(R_cam_target, R_proj_target, projector_side: str | None):
                      "inverted, calibrate again with the projector's side")
     else:
         mirror = f"projector_side={projector_side}"
-    return Rc, Rp, R_pc, mirror, warns
+    return R_ct, R_pt, R_pc, mirror, warns
