@@ -1,5 +1,6 @@
 """Shared test helpers."""
 
+import numpy as np
 import pytest
 
 from telefringe.fringes.phase import NoiseModel
@@ -17,3 +18,25 @@ def _rig_noise(vrig) -> NoiseModel:
 def rig_noise():
     """``rig_noise(vrig) -> NoiseModel``: the camera noise of a virtual rig, in DN."""
     return _rig_noise
+
+
+def _jacobian_error(problem, x) -> float:
+    """Largest error of ``problem.jacobian(x)`` against central differences of
+    ``problem.residuals``, relative to each column's largest entry."""
+    J = problem.jacobian(x).toarray()
+    num = np.empty_like(J)
+    for j in range(x.size):
+        h = 1e-6 * max(abs(x[j]), 1e-3)
+        xp, xm = x.copy(), x.copy()
+        xp[j] += h
+        xm[j] -= h
+        num[:, j] = (problem.residuals(xp) - problem.residuals(xm)) / (2 * h)
+    scale = np.maximum(np.abs(num).max(axis=0), 1e-12)
+    return float(np.max(np.abs(J - num) / scale))
+
+
+@pytest.fixture(scope="session")
+def jacobian_error():
+    """``jacobian_error(problem, x) -> float``: a bundle problem's analytic Jacobian
+    against finite differences (relative to each column's scale)."""
+    return _jacobian_error

@@ -17,6 +17,23 @@ __all__ = ["fit_ellipse"]
 
 
 # --------------------------------------------------------------------------- ellipse fit
+def _axes_of(Q: np.ndarray):
+    """Semi-axes and angle (a, b, theta) of the ellipse ``p^T Q p = 1`` (Q (2, 2)
+    symmetric): a >= b, theta of the major axis in (-pi/2, pi/2]; None unless Q is
+    positive definite."""
+    ev, evec = np.linalg.eigh(Q)
+    if not np.all(np.isfinite(ev)) or np.any(ev <= 0):
+        return None
+    # ev ascending: the smaller eigenvalue belongs to the major axis
+    d = evec[:, 0]
+    theta = float(np.arctan2(d[1], d[0]))
+    if theta > np.pi / 2:
+        theta -= np.pi
+    elif theta <= -np.pi / 2:
+        theta += np.pi
+    return 1 / np.sqrt(ev[0]), 1 / np.sqrt(ev[1]), theta
+
+
 def fit_ellipse(x, y):
     """Direct least-squares ellipse fit (Fitzgibbon, Pilu and Fisher; in the numerically
     stable form of Halir and Flusser) to points (x, y).
@@ -73,18 +90,10 @@ def fit_ellipse(x, y):
     yc = (B0 * D0 - 2 * A0 * E0) / det
     Fc = A0 * xc**2 + B0 * xc * yc + C0 * yc**2 + D0 * xc + E0 * yc + F0
     Q = np.array([[A0, B0 / 2], [B0 / 2, C0]]) / (-Fc)
-    ev, evec = np.linalg.eigh(Q)
-    if np.any(ev <= 0):
+    axes = _axes_of(Q)
+    if axes is None:
         raise ValueError("fit_ellipse: no ellipse fits these points")
-    # ev ascending: the smaller eigenvalue belongs to the major axis
-    a_ax, b_ax = 1 / np.sqrt(ev[0]), 1 / np.sqrt(ev[1])
-    d = evec[:, 0]
-    theta = float(np.arctan2(d[1], d[0]))
-    if theta > np.pi / 2:
-        theta -= np.pi
-    elif theta <= -np.pi / 2:
-        theta += np.pi
-    params = np.array([xc, yc, a_ax, b_ax, theta])
+    params = np.array([xc, yc, *axes])
     # first-order geometric distance: (q - 1) / |grad q| with q = p^T Q p
     px, py = x - xc, y - yc
     q = Q[0, 0] * px**2 + 2 * Q[0, 1] * px * py + Q[1, 1] * py**2
@@ -264,17 +273,11 @@ def _fit_blurred_ellipse(win, xx, yy, params, bg, origin, depth, *, max_iter=15)
             if lam > 1e6:
                 break
     q11, q12, q22 = theta[2:5]
-    ev, evec = np.linalg.eigh(np.array([[q11, q12], [q12, q22]]))
-    if not np.all(np.isfinite(theta)) or np.any(ev <= 0) or not 0.05 < abs(theta[5]) < 10:
+    if not np.all(np.isfinite(theta)) or not 0.05 < abs(theta[5]) < 10:
         return None
-    if np.hypot(theta[0] + ox - xc, theta[1] + oy - yc) > 2.0:
+    axes = _axes_of(np.array([[q11, q12], [q12, q22]]))
+    if axes is None or np.hypot(theta[0] + ox - xc, theta[1] + oy - yc) > 2.0:
         return None
-    d = evec[:, 0]
-    ang = float(np.arctan2(d[1], d[0]))
-    if ang > np.pi / 2:
-        ang -= np.pi
-    elif ang <= -np.pi / 2:
-        ang += np.pi
-    out = np.array([theta[0] + ox, theta[1] + oy, 1 / np.sqrt(ev[0]), 1 / np.sqrt(ev[1]), ang])
+    out = np.array([theta[0] + ox, theta[1] + oy, *axes])
     rms = float(np.sqrt(cost / z.size)) / max(abs(theta[7]), 1e-12)
     return out, rms
