@@ -157,6 +157,42 @@ def test_seating_plane_simple_cases():
         seating_plane_coplanarity(apex[:2], (0.5, 0.5), reference=Plane.horizontal(0.0))
 
 
+def test_seating_plane_of_a_rocking_package():
+    """On a point-symmetric grid the centre of gravity often lies on the edge shared by
+    two seating triangles (the midpoint of two balls placed symmetrically about it): the
+    package may rest on either, with different coplanarities. The worst is reported, and
+    all of them, whichever side of the edge a rounding error puts the centre."""
+    from telefringe.simulate.scenes import default_bga
+
+    bga = default_bga(seed=0, rows=6, cols=6, n_missing=2, centre=(15.0, 12.0))
+    apex = bga.apexes_world()[bga.present()]
+    flat = Plane.horizontal(0.0)
+    g = np.array([15.0, 12.0])
+    cop = seating_plane_coplanarity(apex, g, reference=flat)
+    assert cop.rocks and cop.alternatives.size == 2  # this grid's truth rocks
+    assert cop.value == cop.alternatives[0] > cop.alternatives[1] + 0.01
+    # the shared edge runs from ball (0, 5) at (17, 10) to ball (4, 1) at (13.8, 13.2),
+    # through the centre: a step of 10 nm across it either way decides the plane
+    nv = np.array([1.0, 1.0]) / np.sqrt(2)
+    sides = [seating_plane_coplanarity(apex, g + d * nv, reference=flat) for d in (1e-5, -1e-5)]
+    assert not any(c.rocks for c in sides)
+    assert sorted(c.value for c in sides) == pytest.approx(sorted(cop.alternatives), abs=1e-12)
+    # with a tolerance wider than the step, both planes are seen from either side
+    for d in (1e-5, -1e-5):
+        near = seating_plane_coplanarity(apex, g + d * nv, reference=flat, cog_tolerance=2e-5)
+        assert near.value == pytest.approx(cop.value, abs=1e-12)
+        assert np.allclose(near.alternatives, cop.alternatives, atol=1e-12)
+    # sigma: linear in the heights' sigma, and 0 without it
+    s1 = seating_plane_coplanarity(apex, g, reference=flat,
+                                   sigma_heights=np.full(len(apex), 1e-3)).sigma
+    s2 = seating_plane_coplanarity(apex, g, reference=flat,
+                                   sigma_heights=np.full(len(apex), 2e-3)).sigma
+    assert 1e-3 <= s1 < 3e-3 and s2 == pytest.approx(2 * s1)
+    assert np.isnan(cop.sigma)
+    with pytest.raises(MetrologyError, match="cog_tolerance"):
+        seating_plane_coplanarity(apex, g, reference=flat, cog_tolerance=-1.0)
+
+
 def test_bga_errors():
     cloud, present, offs, apex = bga_cloud(rows=3, cols=3, missing=())
     with pytest.raises(MetrologyError, match="span"):

@@ -18,6 +18,8 @@ from telefringe.metrology.bga.segment import cap_candidates, segment
 from telefringe.reconstruction.cloud import PointCloud
 
 CAP_MODELS = ("psf", "free", "fixed")
+#: Coverage factor of the seating triangles' distance from the centre of gravity.
+COG_K = 4.0
 
 
 @dataclass(frozen=True)
@@ -355,7 +357,15 @@ def _on_the_grid(cloud, seg, nominal: BGANominal, b: dict, failed, s2,
         mid_plane = np.array([[c_, -s_], [s_, c_]]) @ mid_local  # rotate back by theta
         cog = mid_plane[0] * T[0] + mid_plane[1] * T[1] + substrate.offset * nrm
     apex = b["apex"]
-    cop = seating_plane_coplanarity(apex[sel], cog, reference=substrate.plane)
+    # the centre of gravity is known relative to the balls only as well as their
+    # in-plane positions: a seating triangle within K of their sigma of it is one the
+    # package may rest on (on a point-symmetric grid the centre often lies on an edge
+    # of two seating triangles; the worst of them is reported, see Coplanarity)
+    sig_c = b["sig_c"][sel]
+    sig_plane = np.sqrt(np.mean(np.sum((sig_c[:, None, :] * T[None]) ** 2, axis=2)))
+    cop = seating_plane_coplanarity(apex[sel], cog, reference=substrate.plane,
+                                    cog_tolerance=COG_K * float(sig_plane),
+                                    sigma_heights=b["sig_h"][sel])
     radius = b["radius"]
     return BGAMeasurement(
         index=np.argwhere(found), centre=b["centre"][sel],
