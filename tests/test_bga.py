@@ -107,10 +107,19 @@ def test_bga_centres_from_highlights():
     for m in (m0, m1):
         err = m.height - (0.35 + offs)[present]
         rel = err - err.mean()
-        # (sigma_height holds the common term too, so this is a little below 1: measured
-        # 0.77 and 0.81; the band is 4 standard errors of 40 values)
-        assert abs(np.sqrt(np.mean((rel / m.sigma_height) ** 2)) - 1) < 4 / np.sqrt(2 * rel.size)
+        # (sigma_height_noise holds the common term too, so this is a little below 1:
+        # measured 0.77 and 0.81; the band is 4 standard errors of 40 values). The noise
+        # part only: this analytic cloud has none of the rendered caps' per-ball model
+        # error that sigma_height adds with an image (sigma_height_model)
+        rms = np.sqrt(np.mean((rel / m.sigma_height_noise) ** 2))
+        assert abs(rms - 1) < 4 / np.sqrt(2 * rel.size), rms
         assert abs(err.mean()) < 4 * 0.011e-3 * m.sigma_psf_variance * 1e6 + 1e-4
+    # the model term: with the image only, 0.023 px, and in the total
+    assert np.isnan(m0.sigma_height_model)
+    assert np.array_equal(m0.sigma_height, m0.sigma_height_noise)
+    px = float(np.nanmedian(np.diff(cloud.x, axis=1)))
+    assert m1.sigma_height_model == pytest.approx(0.023 * px, rel=0.02)
+    assert np.allclose(m1.sigma_height, np.hypot(m1.sigma_height_noise, m1.sigma_height_model))
     with pytest.raises(MetrologyError, match="shape"):
         measure_bga(cloud, nom, image=img[:-1])
 
