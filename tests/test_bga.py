@@ -107,10 +107,19 @@ def test_bga_centres_from_highlights():
     for m in (m0, m1):
         err = m.height - (0.35 + offs)[present]
         rel = err - err.mean()
-        # (sigma_height holds the common term too, so this is a little below 1: measured
-        # 0.77 and 0.81; the band is 4 standard errors of 40 values)
-        assert abs(np.sqrt(np.mean((rel / m.sigma_height) ** 2)) - 1) < 4 / np.sqrt(2 * rel.size)
+        # (sigma_height_noise holds the common term too, so this is a little below 1:
+        # measured 0.77 and 0.81; the band is 4 standard errors of 40 values). The noise
+        # part only: this analytic cloud has none of the rendered caps' per-ball model
+        # error that sigma_height adds with an image (sigma_height_model)
+        rms = np.sqrt(np.mean((rel / m.sigma_height_noise) ** 2))
+        assert abs(rms - 1) < 4 / np.sqrt(2 * rel.size), rms
         assert abs(err.mean()) < 4 * 0.011e-3 * m.sigma_psf_variance * 1e6 + 1e-4
+    # the model term: with the image only, 0.023 px, and in the total
+    assert np.isnan(m0.sigma_height_model)
+    assert np.array_equal(m0.sigma_height, m0.sigma_height_noise)
+    px = float(np.nanmedian(np.diff(cloud.x, axis=1)))
+    assert m1.sigma_height_model == pytest.approx(0.023 * px, rel=0.02)
+    assert np.allclose(m1.sigma_height, np.hypot(m1.sigma_height_noise, m1.sigma_height_model))
     with pytest.raises(MetrologyError, match="shape"):
         measure_bga(cloud, nom, image=img[:-1])
 
@@ -155,6 +164,42 @@ def test_seating_plane_simple_cases():
         seating_plane_coplanarity(apex, (5.0, 5.0), reference=Plane.horizontal(0.0))
     with pytest.raises(MetrologyError):
         seating_plane_coplanarity(apex[:2], (0.5, 0.5), reference=Plane.horizontal(0.0))
+
+
+def test_seating_plane_of_a_rocking_package():
+    """On a point-symmetric grid the centre of gravity often lies on the edge shared by
+    two seating triangles (the midpoint of two balls placed symmetrically about it): the
+    package may rest on either, with different coplanarities. The worst is reported, and
+    all of them, whichever side of the edge a rounding error puts the centre."""
+    from telefringe.simulate.scenes import default_bga
+
+    bga = default_bga(seed=0, rows=6, cols=6, n_missing=2, centre=(15.0, 12.0))
+    apex = bga.apexes_world()[bga.present()]
+    flat = Plane.horizontal(0.0)
+    g = np.array([15.0, 12.0])
+    cop = seating_plane_coplanarity(apex, g, reference=flat)
+    assert cop.rocks and cop.alternatives.size == 2  # this grid's truth rocks
+    assert cop.value == cop.alternatives[0] > cop.alternatives[1] + 0.01
+    # the shared edge runs from ball (0, 5) at (17, 10) to ball (4, 1) at (13.8, 13.2),
+    # through the centre: a step of 10 nm across it either way decides the plane
+    nv = np.array([1.0, 1.0]) / np.sqrt(2)
+    sides = [seating_plane_coplanarity(apex, g + d * nv, reference=flat) for d in (1e-5, -1e-5)]
+    assert not any(c.rocks for c in sides)
+    assert sorted(c.value for c in sides) == pytest.approx(sorted(cop.alternatives), abs=1e-12)
+    # with a tolerance wider than the step, both planes are seen from either side
+    for d in (1e-5, -1e-5):
+        near = seating_plane_coplanarity(apex, g + d * nv, reference=flat, cog_tolerance=2e-5)
+        assert near.value == pytest.approx(cop.value, abs=1e-12)
+        assert np.allclose(near.alternatives, cop.alternatives, atol=1e-12)
+    # sigma: linear in the heights' sigma, and 0 without it
+    s1 = seating_plane_coplanarity(apex, g, reference=flat,
+                                   sigma_heights=np.full(len(apex), 1e-3)).sigma
+    s2 = seating_plane_coplanarity(apex, g, reference=flat,
+                                   sigma_heights=np.full(len(apex), 2e-3)).sigma
+    assert 1e-3 <= s1 < 3e-3 and s2 == pytest.approx(2 * s1)
+    assert np.isnan(cop.sigma)
+    with pytest.raises(MetrologyError, match="cog_tolerance"):
+        seating_plane_coplanarity(apex, g, reference=flat, cog_tolerance=-1.0)
 
 
 def test_bga_errors():

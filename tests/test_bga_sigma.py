@@ -1,13 +1,12 @@
 """The BGA apex-height uncertainty against the truth: normalised errors pooled over seeds,
 tested with a two-sided band from their sampling error (independent pixel noise).
 
-Here sigma_height holds (pooled RMS 0.96-1.09 for the cap models). On rendered scans
-the normalised apex error against the truth is 1.37 (test_reconstruct_virtual, paper
-rig) to 1.5-1.7 (the 160 px window of test_measure_bga_cli, 36 whole balls), yet the
-scatter of each ball's height over 4 noise seeds is 0.99 sigma_height there: sigma is a
-right repeatability, and the rest is a per-ball error of the cap model that does not
-change with the noise (0.94 um RMS over the balls). It needs a model term, not a larger
-noise sigma; it is not in sigma_height, so it is not tested here."""
+Here (analytic clouds, no image) sigma_height is the noise part alone
+(sigma_height_model is NaN) and holds: pooled RMS 0.96-1.09 for the cap models. On
+rendered scans the caps also carry a per-ball error of the cap model that does not
+change with the noise; with an image and the point-spread model sigma_height adds it
+(sigma_height_model, 0.023 px, measured on the virtual paper rig; tested against the
+truth in test_reconstruct_virtual)."""
 
 from __future__ import annotations
 

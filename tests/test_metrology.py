@@ -208,8 +208,10 @@ def bga_cloud(*, rows=6, cols=7, pitch=0.8, D=0.45, h0=0.35, sigma=0.002, seed=0
 
 
 def brute_force_coplanarity(m):
-    """Seating plane by enumeration: the triple whose plane has every apex below it and
-    whose triangle contains the centre of gravity; coplanarity = max distance."""
+    """Seating plane by enumeration: the triples whose plane has every apex below it and
+    whose triangle lies within the measurement's ``cog_tolerance`` of the centre of
+    gravity (the planes the package may rest on); coplanarity = the largest distance
+    from any of them (the worst case, as measure_bga reports it)."""
     sub = m.substrate
     T = np.stack([sub.tangent[0], sub.tangent[1]])
     q = m.apex @ T.T
@@ -229,11 +231,19 @@ def brute_force_coplanarity(m):
             continue
         # barycentric test of g in triangle (a, b, c)
         lam = np.linalg.solve(P.T, np.array([g[0], g[1], 1.0]))
-        if np.any(lam < -1e-9):
+        if np.any(lam < -1e-9) and min(
+                _segment_distance(g[:2], q[s], q[t]) for s, t in ((a, b), (b, c), (c, a))
+        ) > m.coplanarity.cog_tolerance + 1e-9:
             continue
         abc = np.linalg.solve(P, h[[a, b, c]])
         gap = q @ abc[:2] + abc[2] - h
         if np.all(gap >= -1e-9):
             val = np.max(gap) / np.sqrt(1 + abc[0] ** 2 + abc[1] ** 2)
-            best = val if best is None else min(best, val)
+            best = val if best is None else max(best, val)
     return best
+
+
+def _segment_distance(g, a, b):
+    t = b - a
+    s = np.clip((g - a) @ t / (t @ t), 0.0, 1.0)
+    return float(np.linalg.norm(g - a - s * t))

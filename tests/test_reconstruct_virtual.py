@@ -181,8 +181,11 @@ def test_bga_on_the_paper_rig(paper_bga):
     th = _true_apex_heights(f, m)
     e = m.height - th
     # apex heights against their sigma, two-sided from the sampling error: n = 34 balls,
-    # 1 / sqrt(2 n) = 12 %, 4 of them (measured 1.37: sigma_height is about 37 % low, a
-    # known gap of the BGA fit's uncertainty; this band only just admits it)
+    # 1 / sqrt(2 n) = 12 %, 4 of them. sigma_height holds the cap model's per-ball term
+    # (0.023 px = 0.75 um here, measured on other scenes and noise seeds of this rig:
+    # see SIGMA_HEIGHT_MODEL_PX); measured 0.97 (0.97 with noise seed 4); with the noise
+    # part alone 1.37
+    assert m.sigma_height_model == pytest.approx(0.75e-3, rel=0.05)
     zh = np.sqrt(np.mean((e / m.sigma_height) ** 2))
     assert abs(zh - 1) < 4 / np.sqrt(2 * e.size), zh
     # RMS error: measured 1.03 um, bound 2x
@@ -213,17 +216,23 @@ def test_bga_on_the_paper_rig(paper_bga):
     assert abs(from_heights - truth_cop) < 2 * np.max(np.abs(e)), (from_heights, truth_cop)
 
 
-@pytest.mark.xfail(
-    strict=True, raises=AssertionError,
-    reason="measure_bga's coplanarity of this 6 x 6 window is "
-    "56.2 um against the truth's 70.0 um, although its apex heights give "
-    "69.95 um (a defect in measure_bga's seating plane: reported)")
 def test_bga_coplanarity_on_the_paper_rig(paper_bga):
     f, m = paper_bga
     cw = {tuple(i): c for i, c in zip(f["ball_index"], f["centres_world"], strict=True)}
     xy = np.array([cw[tuple(i)][:2] for i in m.index])
-    truth_cop = seating_plane_coplanarity(np.column_stack([xy, _true_apex_heights(f, m)]),
-                                          np.array([15.0, 12.0]),
-                                          reference=Plane.horizontal(0.0)).value
-    assert abs(m.coplanarity.value - truth_cop) < 2 * np.max(np.abs(m.height
-                                                                     - _true_apex_heights(f, m)))
+    truth = seating_plane_coplanarity(np.column_stack([xy, _true_apex_heights(f, m)]),
+                                      np.array([15.0, 12.0]),
+                                      reference=Plane.horizontal(0.0))
+    cop = m.coplanarity
+    # this window's centre of gravity lies on the edge from ball (0, 5) to ball (4, 1)
+    # shared by two seating triangles (truth: 70.0 and 56.8 um); the measured centre is
+    # 0.13 um off it, well within the balls' in-plane sigma, and once decided the plane
+    # by that alone (56.2 um reported). Both planes are now found, the worst reported:
+    # measured 69.95 / 56.17 um against the truth's 70.01 / 56.83 um
+    assert truth.rocks and cop.rocks
+    assert cop.alternatives.size == truth.alternatives.size
+    # each within K sigma of the coplanarity (from the apexes' sigma_height: 1.8 um;
+    # measured differences 0.06 and 0.66 um)
+    assert np.all(np.abs(cop.alternatives - truth.alternatives) < K * cop.sigma), (
+        cop.alternatives, truth.alternatives, cop.sigma)
+    assert 0 < cop.sigma < 3 * np.max(m.sigma_height)

@@ -46,11 +46,20 @@ class BGAMeasurement:
         specular highlight (see :func:`measure_bga`).
     apex : (n, 3) world mm, top of the ball (farthest from the substrate).
     height : (n,) mm, apex height above the substrate plane.
-    sigma_height : (n,) mm, its standard uncertainty from the pixels' noise (a
-        repeatability: on the virtual paper rig the scatter of each ball's height over
-        noise seeds is 0.99 of it). It does not hold the cap model's error, which varies
-        from ball to ball but not with the noise (0.9 um RMS on that rig, so the
-        normalised error against the truth is 1.4-1.7 there), nor the calibration's.
+    sigma_height : (n,) mm, its standard uncertainty: ``sigma_height_noise`` and
+        ``sigma_height_model`` in quadrature (the noise alone where the model term is
+        NaN). It does not hold the calibration's uncertainty.
+    sigma_height_noise : (n,) mm, the part from the pixels' noise (a repeatability: on
+        the virtual paper rig the scatter of each ball's height over noise seeds is
+        0.99 of it over 4 seeds of one window, 0.87 over seed pairs of 136 balls).
+    sigma_height_model : float, mm, the per-ball error of the cap model, which varies
+        from ball to ball but not with the noise: ``SIGMA_HEIGHT_MODEL_PX`` (0.023) camera
+        pixels on the object for cap model "psf" with an image, measured on the virtual
+        paper rig (0.76 um there; against the truth the normalised error is then 0.99,
+        1.4-1.5 without it; see :data:`telefringe.metrology.bga.measure.SIGMA_HEIGHT_MODEL_PX`
+        for the method). NaN (not measured) for the other cap models and without an
+        image: ``sigma_height`` is then the noise part alone and too small against the
+        truth on a real scan.
     diameter : (n,) mm, of the fitted sphere; NaN where the cap did not determine it
         (the fit then used the nominal diameter).
     position : (n, 2) mm, ball centre on the substrate plane, in the grid's frame
@@ -107,14 +116,18 @@ class BGAMeasurement:
     not_measured: tuple = ()
     psf_balls: int = 0
     psf_converged: bool | None = None
+    sigma_height_noise: np.ndarray | None = None
+    sigma_height_model: float = np.nan
 
     def __post_init__(self):
         for key, reason in self.not_measured:
             if reason not in NOT_MEASURED_REASONS:
                 raise ValueError(f"not_measured {key}: unknown reason {reason!r}")
+        if self.sigma_height_noise is None:
+            object.__setattr__(self, "sigma_height_noise", self.sigma_height)
         _freeze(self, "index", "centre", "sigma_centre", "refined", "apex", "height",
-                  "sigma_height", "diameter", "position", "rms", "n_points", "found",
-                  "pitch_x", "pitch_y")
+                  "sigma_height", "sigma_height_noise", "diameter", "position", "rms",
+                  "n_points", "found", "pitch_x", "pitch_y")
 
     @property
     def n_balls(self) -> int:
