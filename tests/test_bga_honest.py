@@ -100,7 +100,16 @@ def test_exports_show_not_measured_and_missing(tmp_path):
     for ij in TRUE_MISSING:
         assert status[ij] == ("missing", "")
     assert sum(s == "ok" for s, _ in status.values()) == m.n_balls
+    noise = {(int(r["row"]), int(r["col"])): float(r["sigma_height_noise_mm"]) for r in rows
+             if r["status"] == "ok"}
+    for k, ij in enumerate(map(tuple, m.index)):
+        assert abs(noise[ij] - m.sigma_height_noise[k]) < 5e-7  # printed to 1e-6 mm
     js = json.loads(write_json(tmp_path / "b.json", bga_summary(m)).read_text())
+    sc = m.coplanarity.sigma
+    assert js["sigma_coplanarity_mm"] == (pytest.approx(sc) if np.isfinite(sc) else None)
+    assert js["coplanarity_alternatives_mm"][0] == pytest.approx(m.coplanarity.value)
+    assert js["package_rocks"] == m.coplanarity.rocks
+    assert len(js["balls"]["sigma_height_noise_mm"]) == m.n_balls
     assert js["balls_not_measured"] == 4
     assert {tuple(d["index"]): d["reason"] for d in js["not_measured"]} == dict(m.not_measured)
     assert sorted(map(tuple, js["missing"])) == sorted(TRUE_MISSING)

@@ -208,7 +208,14 @@ def bga_cmd(
         info(f"diameter: mean {np.nanmean(m.diameter):.4f} mm "
              f"({int(np.isfinite(m.diameter).sum())} balls large enough in the image)")
     info(f"pitch: largest error {_um(m.pitch_error_max)}")
-    info(f"coplanarity (JEDEC seating plane): {_um(m.coplanarity.value)}")
+    cop = m.coplanarity
+    info(f"coplanarity (JEDEC seating plane): {_um(cop.value)}"
+         + (f" ± {_um(cop.sigma)}" if np.isfinite(cop.sigma) else ""))
+    if cop.rocks:
+        info("  the package may rest on "
+             f"{cop.alternatives.size} seating planes (its centre of gravity lies on an edge "
+             "between them, within the balls' position uncertainty): coplanarity "
+             + ", ".join(_um(v) for v in cop.alternatives) + "; the largest is reported")
     write_bga_csv(csv_path, m, force=force)
     write_bga_png(map_path, m, force=force)
     info(f"wrote {csv_path} and {map_path}")

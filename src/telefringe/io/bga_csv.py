@@ -14,7 +14,7 @@ __all__ = ["write_bga_csv"]
 _BGA_COLUMNS = ("row", "col", "status", "x_mm", "y_mm", "z_mm", "apex_x_mm", "apex_y_mm",
                 "apex_z_mm", "height_mm", "sigma_height_mm", "diameter_mm", "pos_x_mm",
                 "pos_y_mm", "dx_mm", "dy_mm", "coplanarity_mm", "seating_contact", "fit_rms_mm",
-                "n_points", "reason")
+                "n_points", "reason", "sigma_height_noise_mm")
 
 
 def write_bga_csv(path, m, *, force: bool = False) -> Path:
@@ -30,7 +30,9 @@ def write_bga_csv(path, m, *, force: bool = False) -> Path:
     ``sigma_height_mm``; ``diameter_mm``; ``pos_*_mm`` (centre in the grid frame) and
     ``dx/dy_mm`` (its offset from the nominal position); ``coplanarity_mm`` (distance of the
     apex from the JEDEC seating plane); ``seating_contact`` (1 for the balls the package
-    rests on); ``fit_rms_mm``; ``n_points``; ``reason`` (empty unless not measured).
+    rests on); ``fit_rms_mm``; ``n_points``; ``reason`` (empty unless not measured);
+    ``sigma_height_noise_mm``, the part of ``sigma_height_mm`` from the pixels' noise (the
+    rest is the cap model's, ``sigma_height_model`` of the measurement).
     """
     pitch = m.nominal.pitch_mm
     contacts = set(int(k) for k in m.coplanarity.contacts)
@@ -38,16 +40,16 @@ def write_bga_csv(path, m, *, force: bool = False) -> Path:
     unexpected = set(m.unexpected)
     populated = m.nominal.populated()
     not_measured = dict(m.not_measured)
-    blank = [""] * (len(_BGA_COLUMNS) - 4)
+    blank = [""] * (len(_BGA_COLUMNS) - 5)
     rows = []
     for i in range(m.nominal.rows):
         for j in range(m.nominal.cols):
             k = by_pos.get((i, j))
             if k is None:
                 if (i, j) in not_measured:
-                    rows.append([i, j, "not_measured", *blank, not_measured[(i, j)]])
+                    rows.append([i, j, "not_measured", *blank, not_measured[(i, j)], ""])
                 elif populated[i, j]:
-                    rows.append([i, j, "missing", *blank, ""])
+                    rows.append([i, j, "missing", *blank, "", ""])
                 continue
             status = "unexpected" if (i, j) in unexpected else "ok"
             c, a = m.centre[k], m.apex[k]
@@ -57,7 +59,8 @@ def write_bga_csv(path, m, *, force: bool = False) -> Path:
                          f"{m.diameter[k]:.6f}", f"{px:.6f}", f"{py:.6f}",
                          f"{px - j * pitch:.6f}", f"{py - i * pitch:.6f}",
                          f"{m.coplanarity.distances[k]:.6f}", int(k in contacts),
-                         f"{m.rms[k]:.6f}", int(m.n_points[k]), ""])
+                         f"{m.rms[k]:.6f}", int(m.n_points[k]), "",
+                         f"{m.sigma_height_noise[k]:.6f}"])
     path = Path(path)
     with atomic_file(path, force=force) as tmp, open(tmp, "w", newline="") as f:
         wr = csv.writer(f)

@@ -151,7 +151,11 @@ def bga_summary(m) -> dict:
                          for (i, j), why in m.not_measured],
         "unexpected": [list(x) for x in m.unexpected],
         "coplanarity_mm": _f(m.coplanarity.value),
+        "sigma_coplanarity_mm": _f(m.coplanarity.sigma),
+        "coplanarity_alternatives_mm": to_jsonable(m.coplanarity.alternatives),
+        "package_rocks": bool(m.coplanarity.rocks),
         "seating_contacts": [list(map(int, m.index[k])) for k in m.coplanarity.contacts],
+        "sigma_height_model_mm": _f(m.sigma_height_model),
         "height_mean_mm": _f(np.mean(m.height)), "height_min_mm": _f(np.min(m.height)),
         "height_max_mm": _f(np.max(m.height)),
         "diameter_mean_mm": (_f(np.nanmean(m.diameter)) if np.any(np.isfinite(m.diameter))
@@ -166,6 +170,7 @@ def bga_summary(m) -> dict:
         "substrate": plane_summary(m.substrate),
         "balls": {"index": to_jsonable(m.index), "height_mm": to_jsonable(m.height),
                   "sigma_height_mm": to_jsonable(m.sigma_height),
+                  "sigma_height_noise_mm": to_jsonable(m.sigma_height_noise),
                   "diameter_mm": to_jsonable(m.diameter), "centre_mm": to_jsonable(m.centre),
                   "apex_mm": to_jsonable(m.apex)},
     }
