@@ -137,7 +137,8 @@ def test_reconstruct_command_refuses_the_rig_of_another_projector(plate_out, tmp
     assert "Traceback" not in err
     assert err.strip().splitlines()[-1] == (
         f"error: {tmp / 'scan'}: the scan's patterns are for a {p.intrinsics.width} x "
-        f"{p.intrinsics.height} projector but the rig's projector is {w} x {h}")
+        f"{p.intrinsics.height} projector but the rig's projector is {w} x {h}: use the "
+        "rig.json of the rig that took this scan")
     assert not (tmp_path / "o").exists()
 
 

@@ -86,7 +86,8 @@ def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
             kp.width, kp.height):
         raise TriangulationError(
             f"the scan's patterns are for a {man.projector_width} x {man.projector_height} "
-            f"projector but the rig's projector is {kp.width} x {kp.height}")
+            f"projector but the rig's projector is {kp.width} x {kp.height}: use the rig.json "
+            "of the rig that took this scan")
     coords = decode(scan, **decode_options)
     cloud = triangulate(rig, coords, max_residual=max_residual, max_sigma_z=max_sigma_z)
     hm = None
