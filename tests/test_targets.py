@@ -182,6 +182,23 @@ def test_missing_interior_marker_and_stray_blob():
     assert np.sqrt(np.mean(np.sum((det.centers[ok] - truth[ok]) ** 2, axis=1))) < 0.02
 
 
+def test_a_hole_in_the_image_drops_only_the_marker_it_touches(views):
+    """A NaN pixel inside a marker must not be filled and fitted as plate (it would bias
+    the centre): that marker is not found, every other centre is unchanged."""
+    cam, out = views
+    img = np.array(out[0][2], dtype=float)
+    ref = detect_circle_grid(img, rows=ROWS, cols=COLS)
+    k = 3 * COLS + 4
+    cx, cy = ref.centers[k]
+    holed = img.copy()
+    holed[int(round(cy)) + 3, int(round(cx)) - 2] = np.nan  # inside marker (3, 4)
+    det = detect_circle_grid(holed, rows=ROWS, cols=COLS)
+    assert det and not det.found[k] and det.n_found == ref.n_found - 1
+    others = det.found
+    np.testing.assert_array_equal(det.centers[others], ref.centers[others])
+    assert not detect_circle_grid(np.full_like(img, np.nan), rows=ROWS, cols=COLS)
+
+
 def test_half_hidden_grid_is_refused_with_a_reason():
     rng = np.random.default_rng(5)
     cam = small_camera()

@@ -363,6 +363,16 @@ def _refine(img: np.ndarray, blob, labels, label, *, margin: float, method: str 
     return params, rms
 
 
+def _near_hole(holes: np.ndarray, params: np.ndarray, margin: float) -> bool:
+    """Whether a non-finite pixel lies within the fit window of the ellipse ``params``
+    (x_c, y_c, a, b, theta): its major semi-axis plus the margin and 4 px of edge."""
+    xc, yc, a = params[:3]
+    r = a + margin + 4.0
+    x0, x1 = max(int(np.floor(xc - r)), 0), min(int(np.ceil(xc + r)) + 1, holes.shape[1])
+    y0, y1 = max(int(np.floor(yc - r)), 0), min(int(np.ceil(yc + r)) + 1, holes.shape[0])
+    return bool(holes[y0:y1, x0:x1].any())
+
+
 def detect_circle_grid(image, *, rows: int, cols: int, dark: bool = True,
                        method: str = "model", min_area: int = 12,
                        edge_margin_px: float = 2.0) -> GridDetection:
@@ -371,7 +381,9 @@ def detect_circle_grid(image, *, rows: int, cols: int, dark: bool = True,
     Parameters
     ----------
     image : (H, W) array_like, a fringe-free image of the target (the white frame or the
-        background of a phase group), any numeric dtype.
+        background of a phase group), any numeric dtype. Non-finite pixels (NaN, inf)
+        are allowed: a marker whose fit window holds one is not found (its centre would
+        be biased), the others are unaffected.
     rows, cols : int, the grid's shape (rows along target y, cols along x).
     dark : bool, markers darker than the plate (dark-on-light); False for light-on-dark.
     method : {"model", "edge"}
@@ -416,8 +428,11 @@ def detect_circle_grid(image, *, rows: int, cols: int, dark: bool = True,
     if img.ndim != 2 or min(img.shape) < 8:
         raise ValueError(f"image must be a 2-D array, got shape {img.shape}")
     img = img.astype(np.float64)
-    if not np.all(np.isfinite(img)):
-        img = np.where(np.isfinite(img), img, np.nanmedian(img))
+    holes = ~np.isfinite(img)
+    if holes.all():
+        return _failure(rows, cols, "the image has no finite pixel")
+    if holes.any():  # filled for the blob search only; markers near a hole are dropped
+        img = np.where(holes, np.nanmedian(img), img)
     work = img if dark else (img.max() - img)
     inv = work.max() - work  # markers bright in ``inv``
     if np.ptp(work) <= 0:
@@ -447,6 +462,8 @@ def detect_circle_grid(image, *, rows: int, cols: int, dark: bool = True,
         if out is None:
             continue
         params, e = out
+        if holes.any() and _near_hole(holes, params, edge_margin_px):
+            continue  # a filled pixel would bias the centre: the marker is not found
         ellipses[k] = params
         centers[k] = params[:2]
         rms[k] = e
