@@ -78,7 +78,9 @@ def test_measure_sphere_on_a_plane():
     z = np.where(r2 < R * R, c[2] + np.sqrt(np.maximum(R * R - r2, 0)), 0.0)
     z = np.maximum(z, 0.0)
     cloud = cloud_from(x, y, z, sigma=0.003, seed=7)
-    f, base = measure_sphere(cloud)
+    sm = measure_sphere(cloud)
+    f, base = sm.sphere, sm.base
+    assert sm.region == "above the base plane"
     # the base is the plane Z = 0: its offset at the origin within 4 sigma (~15 nm)
     assert base is not None and abs(base.offset) < 4 * base.sigma_at([0.0, 0.0, 0.0])
     assert f.radius == pytest.approx(R, abs=5 * f.sigma_radius)
@@ -87,3 +89,4 @@ def test_measure_sphere_on_a_plane():
     on = z > 0.05
     expect = 0.003 * np.sqrt(np.mean(((z[on] - c[2]) / R) ** 2))
     assert f.rms == pytest.approx(expect, rel=0.1)
+

@@ -120,7 +120,9 @@ def test_sphere_radius(fast):
     # (4-step fringes: the decoder's gamma correction is at the noise floor; it is
     # exercised by the plate above and tested in its own module; off here for time)
     scan, truth, cloud = _run(fast, scenes.default_sphere(), gamma_correction=False)
-    f, base = measure_sphere(cloud)
+    sm = measure_sphere(cloud)
+    f, base = sm.sphere, sm.base
+    assert sm.region == "above the base plane"
     r_true = truth.features["radius_mm"]
     assert abs(f.radius - r_true) < K * f.sigma_radius
     # the base plane (true z = 0) at its centroid, against its own sigma (~0.028 um):

@@ -129,15 +129,19 @@ def sphere_cmd(
     _check_outputs([json_path], force)
     cloud, _ = _load(out)
     try:
-        f, base = measure_sphere(cloud, min_height=min_height)
+        sm = measure_sphere(cloud, min_height=min_height)
     except _metrology_errors() as exc:
         _fail(out, exc)
+    f, base = sm.sphere, sm.base
+    if base is None:
+        info("[yellow]warning:[/yellow] no base plane holds 20 % of the points: every point "
+             "was fitted as sphere")
     c = f.centre
     info(f"radius {f.radius:.4f} mm (+- {_um(f.sigma_radius)}), diameter {f.diameter:.4f} mm")
     info(f"centre ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f}) mm")
     info(f"form error {_um(f.form_error)} (peak-to-valley), rms {_um(f.rms)}, "
          f"{f.n_inliers} points")
-    _save_json(json_path, sphere_summary(f, base), force)
+    _save_json(json_path, sphere_summary(f, base, region=sm.region), force)
 
 
 def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,

@@ -74,8 +74,9 @@ def plate_summary(m) -> dict:
     }
 
 
-def sphere_summary(f, base=None) -> dict:
-    """A :class:`telefringe.metrology.SphereFit` (and its base plane)."""
+def sphere_summary(f, base=None, *, region: str | None = None) -> dict:
+    """A :class:`telefringe.metrology.SphereFit` (and its base plane, and which points
+    were fitted: ``SphereMeasurement.region``)."""
     out = {"centre_mm": to_jsonable(f.centre), "radius_mm": _f(f.radius),
            "diameter_mm": _f(f.diameter), "sigma_centre_mm": to_jsonable(f.sigma_centre),
            "sigma_radius_mm": _f(f.sigma_radius), "rms_mm": _f(f.rms),
@@ -83,6 +84,8 @@ def sphere_summary(f, base=None) -> dict:
            "n_inliers": int(f.n_inliers)}
     if base is not None:
         out["base_plane"] = plane_summary(base)
+    if region is not None:
+        out["fitted_points"] = region
     return out
 
 

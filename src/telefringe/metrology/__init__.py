@@ -39,7 +39,7 @@ from telefringe.metrology.plate import (
     marker_centres_3d,
     measure_plate,
 )
-from telefringe.metrology.spheres import SphereFit, fit_sphere, measure_sphere
+from telefringe.metrology.spheres import SphereFit, SphereMeasurement, fit_sphere, measure_sphere
 from telefringe.metrology.steps import StepMeasurement, measure_steps
 
 __all__ = [
@@ -56,6 +56,7 @@ __all__ = [
     "grid_spacing",
     "measure_plate",
     "SphereFit",
+    "SphereMeasurement",
     "fit_sphere",
     "measure_sphere",
     "BGANominal",

@@ -215,18 +215,37 @@ def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 
                      int(n_all), nk, inliers, cov)
 
 
+@dataclass(frozen=True, eq=False)
+class SphereMeasurement:
+    """A sphere found in a scan (:func:`measure_sphere`).
+
+    Attributes
+    ----------
+    sphere : SphereFit.
+    base : PlaneFit or None, the plane it stands on; None when no plane holds 20 % of
+        the points, and then every point was fitted as sphere (``region`` says so).
+    region : str, which points were fitted: ``"above the base plane"`` or
+        ``"all points (no base plane found)"``.
+    """
+
+    sphere: SphereFit
+    base: PlaneFit | None
+    region: str
+
+
 def measure_sphere(cloud: PointCloud, *, min_height: float | None = None,
-                   edge_px: int = 1, seed: int = 0) -> tuple[SphereFit, PlaneFit | None]:
+                   edge_px: int = 1, seed: int = 0) -> SphereMeasurement:
     """Find and fit the sphere standing on a plane in a scan.
 
     The base plane is fitted robustly; the largest connected region standing more than
     ``min_height`` above it (default: 8 robust sigma of the plane, at least 20 um) is the
     sphere, shrunk by ``edge_px`` pixels (silhouette pixels mix surfaces), and fitted
-    robustly. When no plane holds at least 20 % of the points, all points are fitted.
+    robustly. When no plane holds at least 20 % of the points, all points are fitted,
+    and the result's ``region`` says so.
 
     Returns
     -------
-    (SphereFit, PlaneFit or None)
+    SphereMeasurement
     """
     from scipy import ndimage
 
@@ -252,6 +271,8 @@ def measure_sphere(cloud: PointCloud, *, min_height: float | None = None,
         if edge_px > 0:
             region = ndimage.binary_erosion(region, iterations=int(edge_px))
         pts = cloud.xyz[region & mask]
+        where = "above the base plane"
     else:
         pts = cloud.points()
-    return fit_sphere(pts, robust=True), base
+        where = "all points (no base plane found)"
+    return SphereMeasurement(fit_sphere(pts, robust=True), base, where)
