@@ -9,41 +9,10 @@ import numpy as np
 
 from telefringe.devices import _telecentric_kernels as _tk
 
-__all__ = ["accumulate_samples", "heightfield_eval", "heightfield_intersect", "camera_rays",
+__all__ = ["heightfield_eval", "heightfield_intersect", "camera_rays",
            "shade", "interp_samples", "plate_intersect", "boxes_intersect",
            "sphere_intersect", "bga_intersect", "plane_intersect", "hit_points",
            "accumulate_many", "sensor_counts"]
-
-
-@numba.njit(cache=True, nogil=True)
-def accumulate_samples(coord, weight, per_pixel, profile, x_first, inv_step, out):
-    """Sum the samples of each pixel: ``out[p] = sum_s weight * profile(coord)``.
-
-    Parameters
-    ----------
-    coord : (P * n,) float64, projector coordinate of each sample (pixel-major).
-    weight : (P * n,) float32 or float64, weight of each sample (includes 1/n).
-    per_pixel : int, n, the number of samples of each pixel.
-    profile : (K,) float64, the emitted intensity sampled at ``x_first + k / inv_step``;
-        linear interpolation between samples, 0 beyond both ends.
-    out : (P,) float64, written.
-    """
-    npix = out.shape[0]
-    last = profile.shape[0] - 1
-    for p in numba.prange(npix):
-        acc = 0.0
-        base = p * per_pixel
-        for s in range(per_pixel):
-            w = weight[base + s]
-            if w == 0.0:
-                continue
-            x = (coord[base + s] - x_first) * inv_step
-            if x < 0.0 or x >= last:
-                continue
-            i = int(x)
-            f = x - i
-            acc += w * (profile[i] * (1.0 - f) + profile[i + 1] * f)
-        out[p] = acc
 
 
 @numba.njit(cache=True, nogil=True)
@@ -532,8 +501,20 @@ def sensor_counts(signal_e, normal, read_e, dn_per_e, full_scale, out):
 
 @numba.njit(cache=True, parallel=True)
 def accumulate_many(coord, weight, per_pixel, profiles, x_first, inv_step, out):
-    """:func:`accumulate_samples` for several profiles (K, n) at once: each sample's
-    table position is computed once. out (K, P) written."""
+    """Sum the samples of each pixel for K profiles at once:
+    ``out[k, p] = sum_s weight * profiles[k](coord)`` (each sample's table position is
+    computed once).
+
+    Parameters
+    ----------
+    coord : (P * n,) float64, projector coordinate of each sample (pixel-major).
+    weight : (P * n,) float32 or float64, weight of each sample (includes 1/n).
+    per_pixel : int, n, the number of samples of each pixel.
+    profiles : (K, n_table) float64, the emitted intensities sampled at
+        ``x_first + i / inv_step``; linear interpolation between samples, 0 beyond both
+        ends.
+    out : (K, P) float64, written.
+    """
     npix = out.shape[1]
     nk = profiles.shape[0]
     last = profiles.shape[1] - 1
