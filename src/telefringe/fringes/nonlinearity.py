@@ -52,6 +52,12 @@ __all__ = [
 
 TWO_PI = 2.0 * np.pi
 
+#: largest noise dilution ``m^2 tau^2 / 2`` of a harmonic whose errors-in-variables bias is
+#: corrected (see :func:`_gauss_newton`): beyond, the correction's own feedback (its
+#: terms grow like m^2 tau^2 times the coefficient) amplifies the noise more than the
+#: bias it removes
+_EIV_DILUTION = 0.1
+
 
 @dataclass(frozen=True)
 class PhaseErrorModel:
@@ -242,11 +248,19 @@ class PhaseErrorFit:
     models : tuple of PhaseErrorModel, one per input group (input order).
     residual_rms : float, rad, weighted RMS of the pair residuals after the fit.
     n_samples : int, pixels used (after outlier rejection), summed over pairs.
+    coverage : tuple of float, one per group (input order): the fraction of the 36
+        10-degree bins of the circle its measured phase occupies over the pixels used
+        (empty when nothing was fitted).
+    warnings : tuple of str, what a person should read: harmonics the data could not
+        decide (too uneven a coverage, a singular covariance, aliasing) and solver
+        fallbacks (a zero start, a stalled iteration). Empty when the fit is clean.
     """
 
     models: tuple[PhaseErrorModel, ...]
     residual_rms: float
     n_samples: int
+    coverage: tuple[float, ...] = ()
+    warnings: tuple[str, ...] = ()
 
 
 def mean_model(models: Sequence[PhaseErrorModel]) -> PhaseErrorModel:
@@ -310,7 +324,8 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
                      absolute: Sequence | None = None,
                      harmonics: Sequence[Sequence[int]] | None = None,
                      max_samples: int = 100_000, iterations: int = 4,
-                     reject: float = 4.0, significance: float = 13.8) -> PhaseErrorFit:
+                     reject: float = 4.0, significance: float = 13.8,
+                     max_inflation: float = 100.0) -> PhaseErrorFit:
     """Learn each group's periodic phase error from a multi-frequency ladder (see the
     module docstring).
 
@@ -333,10 +348,18 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
         must exceed to be kept (13.8: p = 0.001); insignificant harmonics are dropped and
         the rest refitted, so that a linear projector does not get noise added to its
         phase. 0 keeps every harmonic.
+    max_inflation : float, largest variance inflation of a harmonic's coefficients (their
+        variance over what it would be with a basis orthogonal to the other harmonics, as
+        on an even phase coverage). On an uneven coverage a harmonic's basis functions are
+        nearly a combination of the others (and of the unobservable common shift), so the
+        data cannot tell it apart: it is left out, worst first, and the result's
+        ``warnings`` say so. ``inf`` keeps every harmonic.
 
     Returns
     -------
     PhaseErrorFit; a single group (nothing to compare with) gets the zero model.
+    ``coverage`` gives each group's phase coverage; ``warnings`` every harmonic left out
+    for a reason other than its significance, and every fallback of the solver.
     """
     ph = [np.asarray(p, dtype=np.float64) for p in phases]
     per = [int(p) for p in periods]
@@ -373,12 +396,18 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
     if idx.size > max_samples:  # regular subsample (deterministic)
         idx = idx[np.linspace(0, idx.size - 1, max_samples).astype(np.int64)]
     samp = [p.ravel()[idx] for p in ph]
+    notes: list[str] = []
+    coverage = tuple(_coverage(x) for x in samp)
     # a harmonic needs the phases to cover the circle: with K distinct (equally spaced)
     # values, orders m and K - m alias; keep m < K / 4 (K counted in 4096 bins)
     for g in range(n):
         occupied = np.count_nonzero(np.bincount(
             np.clip(((samp[g] + np.pi) * (4096 / TWO_PI)).astype(np.int64), 0, 4095),
             minlength=4096))
+        left = [m for m in harm[g] if 4 * m >= occupied]
+        if left:
+            notes.append(f"periods {per[g]}: harmonics {left} not fitted, the phase takes "
+                         f"only {occupied} of 4096 values (orders would alias)")
         harm[g] = [m for m in harm[g] if 4 * m < occupied]
     sig = None if sigmas is None else [np.asarray(s, dtype=np.float64).ravel()[idx]
                                        for s in sigmas]
@@ -402,7 +431,19 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
         sb = ones if sig is None else sig[b]
         pairs.append((a, b, r, sa, sb, ka, kb))
 
-    models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject)
+    models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject,
+                                     notes=notes)
+    if cov is not None and np.isfinite(max_inflation):
+        pruned, worst = _identifiable(cov, harm, max_inflation)
+        for g, m, vif in worst:
+            notes.append(f"periods {per[g]}: harmonic {m} not learned, the phase covers "
+                         f"{coverage[g]:.0%} of its circle (10-degree bins) too unevenly "
+                         f"to tell it from the other harmonics (variance inflation "
+                         f"{vif:.3g} > {max_inflation:g})")
+        if pruned != harm:
+            harm = pruned
+            models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject,
+                                             start=models, notes=notes)
     if significance > 0 and cov is not None:
         offs = np.cumsum([0] + [2 * len(h) for h in harm])
         pruned = []
@@ -415,14 +456,58 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
                 try:
                     chi2 = float(v @ np.linalg.solve(c, v))
                 except np.linalg.LinAlgError:
-                    chi2 = 0.0
+                    notes.append(f"periods {per[g]}: harmonic {m} dropped, its covariance "
+                                 "is singular (the data cannot decide it)")
+                    continue
                 if chi2 > significance:
                     kept.append(m)
             pruned.append(kept)
         if pruned != harm:
             models, rms, nkeep, _ = _solve(samp, per, pruned, pairs, iterations, reject,
-                                           start=models)
-    return PhaseErrorFit(tuple(models), rms, nkeep)
+                                           start=models, notes=notes)
+    return PhaseErrorFit(tuple(models), rms, nkeep, coverage=coverage,
+                         warnings=tuple(dict.fromkeys(notes)))
+
+
+def _coverage(phase) -> float:
+    """Fraction of the 36 10-degree bins of the circle that hold a sample of ``phase``."""
+    if phase.size == 0:
+        return 0.0
+    k = np.clip(((phase + np.pi) * (36 / TWO_PI)).astype(np.int64), 0, 35)
+    return float(np.count_nonzero(np.bincount(k, minlength=36))) / 36.0
+
+
+def _identifiable(cov, harm, limit):
+    """Harmonics left after removing, one at a time, the worst-determined one while its
+    variance inflation exceeds ``limit``; returns (harmonics per group, [(group, order,
+    inflation)] removed). The inflation of a coefficient is ``C_jj (C^-1)_jj`` (1 for a
+    basis orthogonal to the other columns, as on an even phase coverage; the larger of a
+    harmonic's cos and sin is used), computed from the normal matrix ``C^-1`` restricted
+    to the harmonics still in."""
+    cols = [(g, m, k) for g, h in enumerate(harm) for m in h for k in (0, 1)]
+    normal = np.linalg.pinv(cov)
+    normal = 0.5 * (normal + normal.T)
+    live = np.ones(len(cols), dtype=bool)
+    removed = []
+    while live.any():
+        sub = normal[np.ix_(live, live)]
+        try:
+            inv = np.linalg.inv(sub)
+            vif = np.diag(inv) * np.diag(sub)
+        except np.linalg.LinAlgError:
+            vif = np.full(sub.shape[0], np.inf)
+        where = np.flatnonzero(live)
+        j = int(np.argmax(vif))
+        if not vif[j] > limit:
+            break
+        g, m, _ = cols[where[j]]
+        removed.append((g, m, float(vif[j])))
+        for i, (gg, mm, _) in enumerate(cols):
+            if gg == g and mm == m:
+                live[i] = False
+    kept = [[m for m in h if (g, m) not in {(a, b) for a, b, _ in removed}]
+            for g, h in enumerate(harm)]
+    return kept, removed
 
 
 def _wrap(x):
@@ -452,10 +537,11 @@ def _pair_normal_equations(phase_a, phase_b, scale_a, scale_b, harm_a, harm_b, o
     atb[index] += locb
 
 
-def _initial(samp, per, harm, harm_arr, offs, pairs):
+def _initial(samp, per, harm, harm_arr, offs, pairs, notes=None):
     """Starting forward coefficients: the linear fit of the errors as functions of the
     measured phases (inverse form), turned into true-phase estimates, to which each
-    group's forward harmonics are then fitted. Scaled down if not invertible."""
+    group's forward harmonics are then fitted. Scaled down if not invertible; after 20
+    halvings the start is zero, and a line saying so goes to ``notes`` (a list)."""
     n = len(per)
     n_par = int(offs[-1])
     ata = np.zeros((n_par, n_par))
@@ -493,10 +579,13 @@ def _initial(samp, per, harm, harm_arr, offs, pairs):
         if all(m.invertible for m in models):
             return coef
         coef = 0.5 * coef
+    if notes is not None:
+        notes.append("starting values: the linear fit stayed non-invertible after 20 "
+                     "halvings; Gauss-Newton started from zero")
     return np.zeros(n_par)
 
 
-def _solve(samp, per, harm, pairs, iterations, reject, start=None):
+def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
     """Gauss-Newton fit of the forward models; returns (models, rms, samples kept,
     covariance of the coefficients or None).
 
@@ -511,7 +600,8 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None):
     continue on every sample until the step is below 1e-7 rad: the path is shortened, the
     fixed point (the least-squares solution over all samples) is the same. ``start``
     (one PhaseErrorModel per group, e.g. a fit with more harmonics) gives the starting
-    coefficients of the harmonics it has.
+    coefficients of the harmonics it has. Fallbacks (a zero start, a stalled step) are
+    reported as lines appended to ``notes`` (a list) when given.
     """
     offs = np.cumsum([0] + [2 * len(h) for h in harm])
     n_par = int(offs[-1])
@@ -525,16 +615,16 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None):
         sub = [x[::stride] for x in samp]
         sub_pairs = [(a, b, r, *(None if v is None else np.asarray(v)[::stride]
                                  for v in rest)) for a, b, r, *rest in pairs]
-        coef = (_initial(sub, per, harm, harm_arr, offs, sub_pairs) if start is None
+        coef = (_initial(sub, per, harm, harm_arr, offs, sub_pairs, notes) if start is None
                 else _start_coefficients(start, harm, offs))
         coef = _gauss_newton(sub, per, harm, harm_arr, offs, sub_pairs, coef, max_it, reject,
-                             tol=1e-6, reject_first=False)[0]
+                             tol=1e-6, reject_first=False, notes=notes)[0]
     else:
-        coef = (_initial(samp, per, harm, harm_arr, offs, pairs) if start is None
+        coef = (_initial(samp, per, harm, harm_arr, offs, pairs, notes) if start is None
                 else _start_coefficients(start, harm, offs))
     coef, rms, total_keep, ata, chi2 = _gauss_newton(samp, per, harm, harm_arr, offs, pairs,
                                                      coef, max_it, reject, tol=1e-7,
-                                                     reject_first=stride > 1)
+                                                     reject_first=stride > 1, notes=notes)
     models = _models(per, harm, offs, coef)
     s2 = chi2 / max(total_keep - n_par, 1)
     ridge = 1e-9 * np.trace(ata) / n_par + 1e-300
@@ -560,10 +650,27 @@ def _models(per, harm, offs, coef):
 
 
 def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, *, tol,
-                  reject_first):
+                  reject_first, notes=None):
     """Iterations of :func:`_solve` from ``coef``; returns (coef, rms, samples kept, normal
     matrix, chi2) of the last evaluated iterate. Outliers are rejected from the first
-    iteration on when ``reject_first`` (a good start), else from the second."""
+    iteration on when ``reject_first`` (a good start), else from the second.
+
+    Errors in variables: the regressors are evaluated at the true-phase estimates, which
+    carry the very noise that is in the residual. Least squares then learns the
+    conditional mean of the phase given its noisy measurement (a shrinkage towards where
+    the phases are dense, ``sigma^2 d log p / dphi``), which is not a property of the
+    projector: zero on an even phase coverage, but up to tens of mrad on an uneven one.
+    The estimating equation is made unbiased to second order in the noise: by Stein's
+    lemma ``E[F(phi + tau nu) tau nu] = tau^2 E[F'(phi + tau nu)]`` (F the derivative of
+    a phase with respect to a coefficient, :func:`_stein_sum`), and the mean of the
+    inversion of a noisy phase, ``E[phi_est - phi] = -tau^2 g^3 e'' / 2`` (g = 1 /
+    (1 + e')), is taken out of the residual. The noise variances are the model's
+    (``sigmas``) times the scale the residuals measure (their chi-square per degree of
+    freedom), so a mis-scaled noise model does not bias the correction. Harmonics whose
+    noise dilution ``m^2 tau^2 / 2`` (median over the samples) exceeds ``_EIV_DILUTION``
+    are left uncorrected: there the correction's terms, which grow like ``m^2 tau^2``
+    times the coefficients, would feed back and amplify the noise (measured: sigma_phi
+    = 0.05 rad, m = 24 drove the finest group's 24th harmonic to 0.04 rad)."""
     n_par = int(offs[-1])
     models = _models(per, harm, offs, coef)
     rms = chi2 = 0.0
@@ -581,6 +688,7 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         atb = np.zeros(n_par)
         num = den = chi2 = 0.0
         total_keep = 0
+        terms = []
         for a, b, r, sig_a, sig_b, ka, kb in pairs:
             if ka is None:
                 res = _wrap(r * est[a] - est[b])
@@ -598,10 +706,33 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
             chi2 += float(np.sum(z[keep] ** 2))
             den += float(np.sum(wt[keep]))
             total_keep += int(keep.sum())
-            _pair_normal_equations(est[a], est[b], -r * gain[a], gain[b], harm_arr[a],
-                                   harm_arr[b], int(offs[a]), int(offs[b]), -res,
-                                   np.where(keep, wt, 0.0), ata, atb)
+            terms.append((a, b, r, sig_a, sig_b, res, np.where(keep, wt, 0.0)))
         rms = float(np.sqrt(num / den)) if den > 0 else 0.0
+        # errors in variables (see the docstring): each group's noise variance as a true
+        # phase, tau^2 (the model's sigmas times the variance scale the residuals measure),
+        # and the harmonics whose dilution m^2 tau^2 / 2 is small enough to correct
+        s2 = chi2 / max(total_keep - n_par, 1)
+        sig_g = {}
+        for a, b, _, sig_a, sig_b, *_ in pairs:
+            sig_g[a], sig_g[b] = sig_a, sig_b
+        tau2 = [s2 * (sig_g[g] * gain[g]) ** 2 if g in sig_g else np.zeros(1)
+                for g in range(len(per))]
+        fix = [0.5 * harm_arr[g].astype(float) ** 2 * float(np.median(tau2[g]))
+               <= _EIV_DILUTION for g in range(len(per))]
+        curv = [_curvature(m, e, t, f) for m, e, t, f in zip(models, est, tau2, fix,
+                                                               strict=True)]
+        for a, b, r, sig_a, sig_b, res, wk in terms:
+            # the mean of the inversion of a noisy phase, taken out of the residual
+            mean_bias = 0.5 * s2 * (r * sig_a ** 2 * -gain[a] ** 3 * curv[a]
+                                    - sig_b ** 2 * -gain[b] ** 3 * curv[b])
+            _pair_normal_equations(est[a], est[b], -r * gain[a], gain[b], harm_arr[a],
+                                   harm_arr[b], int(offs[a]), int(offs[b]),
+                                   -(res - mean_bias), wk, ata, atb)
+            # Stein's lemma: E[J^T res] = -tau^2 E[F'] per sample, taken out of J^T res
+            for g, fac in ((a, r * r * (sig_a * gain[a]) ** 2), (b, (sig_b * gain[b]) ** 2)):
+                if harm_arr[g].size:
+                    atb[offs[g]:offs[g + 1]] -= s2 * _stein_sum(
+                        models[g], est[g], gain[g], curv[g], wk * fac, fix[g])
         if it == max_it - 1:
             break
         # a tiny ridge keeps poorly covered harmonics (partial phase coverage) bounded
@@ -613,6 +744,9 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
                 break
             step = 0.5 * step
         else:
+            if notes is not None:
+                notes.append(f"Gauss-Newton stopped at iteration {it + 1}: no step kept the "
+                             "model invertible after 20 halvings (not converged)")
             break
         coef = coef + step
         models = trial
@@ -623,6 +757,36 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         if np.max(np.abs(step)) < tol or np.all(np.abs(step) <= 0.01 * se):
             break
     return coef, rms, total_keep, ata, chi2
+
+
+def _curvature(model, x, tau2, fix):
+    """The curvature e''(x) of the model's harmonics selected by ``fix`` (bool, one per
+    harmonic), each damped by ``exp(-m^2 tau2 / 2)``: the mean of ``cos(m (x + tau nu))``
+    over Gaussian noise of variance ``tau2`` (one per sample). (n,) like x."""
+    out = np.zeros(np.shape(x))
+    for m, c, s_, f in zip(model.harmonics, model.cos_coef, model.sin_coef, fix,
+                           strict=True):
+        if f:
+            out -= (m * m) * np.exp(-0.5 * m * m * tau2) * (c * np.cos(m * x)
+                                                            + s_ * np.sin(m * x))
+    return out
+
+
+def _stein_sum(model, x, gain, curv, weight, fix):
+    """``sum_i weight_i F'(x_i)`` with ``F(x) = h(x) / (1 + e'(x))`` (h: cos and sin of
+    each harmonic of ``model``, interleaved as the coefficients), ``gain`` = 1 / (1 + e')
+    and ``curv`` = e'' (see :func:`_curvature`) at x; (2 n_harmonics,), zero for the
+    harmonics not selected by ``fix``."""
+    m = np.asarray(model.harmonics, dtype=float)
+    dgain = -gain * gain * curv
+    mx = np.outer(x, m)
+    c, s_ = np.cos(mx), np.sin(mx)
+    out = np.empty(2 * m.size)
+    out[0::2] = (weight * dgain) @ c - (weight * gain) @ (s_ * m)
+    out[1::2] = (weight * dgain) @ s_ + (weight * gain) @ (c * m)
+    out[0::2] *= fix
+    out[1::2] *= fix
+    return out
 
 
 # --------------------------------------------------------------- measured response (bonus)
