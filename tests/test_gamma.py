@@ -351,3 +351,34 @@ def test_a_singular_covariance_is_reported(monkeypatch):
     assert "periods 1: harmonic 3 dropped, its covariance is singular" in fit.warnings[0]
     assert 3 not in fit.models[0].harmonics
     assert 3 in fit.models[1].harmonics  # the others are judged as before
+
+
+def test_compiled_curvature_and_stein_sums_equal_their_definition():
+    """The compiled errors-in-variables terms against their formulas written out in NumPy
+    (cos/sin of m x per harmonic, no recurrence), with noise damping per sample."""
+    from telefringe.fringes.nonlinearity import PhaseErrorModel, _curvature, _stein_sum
+
+    rng = np.random.default_rng(5)
+    model = PhaseErrorModel(64, (4, 8, 12, 20), (0.01, -0.004, 0.002, 0.001),
+                            (-0.006, 0.003, 0.0015, -0.0007))
+    x = rng.uniform(-np.pi, np.pi, 5000)
+    tau2 = rng.uniform(0.0, 0.003, x.size)
+    fix = np.array([True, True, False, True])
+    m = np.asarray(model.harmonics, dtype=float)
+    c, s = np.cos(np.outer(x, m)), np.sin(np.outer(x, m))
+    damp = np.exp(-0.5 * np.outer(tau2, m * m))
+    cc, sc = np.asarray(model.cos_coef), np.asarray(model.sin_coef)
+    curv_ref = -((damp * m * m * (c * cc + s * sc)) * fix).sum(axis=1)
+    curv = _curvature(model, x, tau2, fix)
+    np.testing.assert_allclose(curv, curv_ref, rtol=0, atol=1e-14 * np.abs(curv_ref).max())
+    gain = 1.0 / (1.0 + rng.uniform(-0.05, 0.05, x.size))
+    w = rng.uniform(0.0, 2.0, x.size)
+    dg = -gain * gain * curv_ref
+    ref = np.empty(2 * m.size)
+    ref[0::2] = (w * dg) @ c - (w * gain) @ (s * m)
+    ref[1::2] = (w * dg) @ s + (w * gain) @ (c * m)
+    ref[0::2] *= fix
+    ref[1::2] *= fix
+    got = _stein_sum(model, x, gain, curv_ref, w, fix)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    assert np.all(got[4:6] == 0.0)  # the harmonic not selected

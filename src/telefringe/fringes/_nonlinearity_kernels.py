@@ -182,3 +182,83 @@ def table_interp(phase, table, wrap_difference, out):
             out[i] = q
         else:
             out[i] = g
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def damped_curvature(phase, tau2, harmonics, cos_coef, sin_coef, out):
+    """``out[i] = -sum_m m^2 exp(-m^2 tau2[i] / 2) (cos_coef[m] cos(m phase[i])
+    + sin_coef[m] sin(m phase[i]))``: the curvature e'' of the series, each harmonic damped
+    by the mean of ``cos(m nu)`` over Gaussian noise nu of variance ``tau2[i]``.
+
+    phase, tau2, out : (n,) float64 (rad, rad^2). The damping ``q^(k^2)`` of the k-th
+    multiple of the orders' divisor d (q = exp(-d^2 tau2 / 2)) is carried by the
+    recurrence ``q^((k+1)^2) = q^(k^2) q^(2k+1)``: one exp per sample.
+    """
+    d, ca, sa = _dense_coefficients(harmonics, cos_coef, sin_coef)
+    for i in nb.prange(phase.size):
+        q = math.exp(-0.5 * d * d * tau2[i])
+        c1 = math.cos(d * phase[i])
+        s1 = math.sin(d * phase[i])
+        c = 1.0
+        s = 0.0
+        damp = 1.0
+        step = q
+        acc = 0.0
+        for k in range(1, ca.size):
+            c, s = c * c1 - s * s1, s * c1 + c * s1
+            damp *= step
+            step *= q * q
+            mk = k * d
+            acc -= mk * mk * damp * (ca[k] * c + sa[k] * s)
+        out[i] = acc
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def stein_sums(phase, dgain, gain, weight, harmonics, out):
+    """``out[2 j] = sum_i weight_i (dgain_i cos(m_j x_i) - gain_i m_j sin(m_j x_i))`` and
+    ``out[2 j + 1] = sum_i weight_i (dgain_i sin(m_j x_i) + gain_i m_j cos(m_j x_i))`` for
+    the orders m_j of ``harmonics`` (x = phase): the derivative sums of Stein's lemma.
+
+    phase, dgain, gain, weight : (n,) float64; harmonics : (k,) int64; out : (2 k,) float64.
+    Summed in a fixed number of chunks (deterministic whatever the thread count).
+    """
+    nh = harmonics.size
+    d = _gcd(harmonics)
+    kmax = 0
+    for j in range(nh):
+        kmax = max(kmax, harmonics[j] // d)
+    n = phase.size
+    n_chunks = 16
+    part_c = np.zeros((n_chunks, kmax + 1))
+    part_s = np.zeros((n_chunks, kmax + 1))
+    for ch in nb.prange(n_chunks):
+        lo = ch * n // n_chunks
+        hi = (ch + 1) * n // n_chunks
+        acc_c = np.zeros(kmax + 1)
+        acc_s = np.zeros(kmax + 1)
+        for i in range(lo, hi):
+            w = weight[i]
+            if w == 0.0:
+                continue
+            c1 = math.cos(d * phase[i])
+            s1 = math.sin(d * phase[i])
+            c = 1.0
+            s = 0.0
+            wd = w * dgain[i]
+            wg = w * gain[i]
+            for k in range(1, kmax + 1):
+                c, s = c * c1 - s * s1, s * c1 + c * s1
+                mk = k * d
+                acc_c[k] += wd * c - wg * mk * s
+                acc_s[k] += wd * s + wg * mk * c
+        part_c[ch] = acc_c
+        part_s[ch] = acc_s
+    for j in range(nh):
+        k = harmonics[j] // d
+        tc = 0.0
+        ts = 0.0
+        for ch in range(n_chunks):
+            tc += part_c[ch, k]
+            ts += part_s[ch, k]
+        out[2 * j] = tc
+        out[2 * j + 1] = ts

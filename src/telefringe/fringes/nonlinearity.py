@@ -762,13 +762,18 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
 def _curvature(model, x, tau2, fix):
     """The curvature e''(x) of the model's harmonics selected by ``fix`` (bool, one per
     harmonic), each damped by ``exp(-m^2 tau2 / 2)``: the mean of ``cos(m (x + tau nu))``
-    over Gaussian noise of variance ``tau2`` (one per sample). (n,) like x."""
-    out = np.zeros(np.shape(x))
-    for m, c, s_, f in zip(model.harmonics, model.cos_coef, model.sin_coef, fix,
-                           strict=True):
-        if f:
-            out -= (m * m) * np.exp(-0.5 * m * m * tau2) * (c * np.cos(m * x)
-                                                            + s_ * np.sin(m * x))
+    over Gaussian noise of variance ``tau2`` (scalar or one per sample). (n,) like x.
+    (Compiled: :func:`telefringe.fringes._nonlinearity_kernels.damped_curvature`.)"""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    out = np.zeros(x.shape)
+    sel = np.asarray(fix, dtype=bool)
+    if not sel.any() or x.size == 0:
+        return out
+    harm = np.asarray(model.harmonics, dtype=np.int64)[sel]
+    t = np.ascontiguousarray(np.broadcast_to(np.asarray(tau2, dtype=np.float64), x.shape))
+    _k.damped_curvature(x.ravel(), t.ravel(), harm,
+                        np.asarray(model.cos_coef, dtype=np.float64)[sel],
+                        np.asarray(model.sin_coef, dtype=np.float64)[sel], out.reshape(-1))
     return out
 
 
@@ -776,16 +781,23 @@ def _stein_sum(model, x, gain, curv, weight, fix):
     """``sum_i weight_i F'(x_i)`` with ``F(x) = h(x) / (1 + e'(x))`` (h: cos and sin of
     each harmonic of ``model``, interleaved as the coefficients), ``gain`` = 1 / (1 + e')
     and ``curv`` = e'' (see :func:`_curvature`) at x; (2 n_harmonics,), zero for the
-    harmonics not selected by ``fix``."""
-    m = np.asarray(model.harmonics, dtype=float)
-    dgain = -gain * gain * curv
-    mx = np.outer(x, m)
-    c, s_ = np.cos(mx), np.sin(mx)
-    out = np.empty(2 * m.size)
-    out[0::2] = (weight * dgain) @ c - (weight * gain) @ (s_ * m)
-    out[1::2] = (weight * dgain) @ s_ + (weight * gain) @ (c * m)
-    out[0::2] *= fix
-    out[1::2] *= fix
+    harmonics not selected by ``fix``. (Compiled:
+    :func:`telefringe.fringes._nonlinearity_kernels.stein_sums`.)"""
+    harm = np.asarray(model.harmonics, dtype=np.int64)
+    out = np.zeros(2 * harm.size)
+    sel = np.asarray(fix, dtype=bool)
+    x = np.ascontiguousarray(x, dtype=np.float64).ravel()
+    if not sel.any() or x.size == 0:
+        return out
+    shape = x.shape
+    g = np.ascontiguousarray(np.broadcast_to(np.asarray(gain, dtype=np.float64), shape))
+    dgain = np.ascontiguousarray(-g * g * np.broadcast_to(curv, shape))
+    w = np.ascontiguousarray(np.broadcast_to(np.asarray(weight, dtype=np.float64), shape))
+    part = np.empty(2 * int(sel.sum()))
+    _k.stein_sums(x, dgain, g, w, harm[sel], part)
+    idx = np.flatnonzero(sel)
+    out[2 * idx] = part[0::2]
+    out[2 * idx + 1] = part[1::2]
     return out
 
 
