@@ -183,9 +183,11 @@ def bga_cmd(
     force: bool = typer.Option(False, "--force", help="Replace existing output files."),
 ):
     """Ball grid array: each ball's apex height above the substrate and position (and
-    diameter with --free-radius); pitch to neighbours; missing balls; coplanarity against
-    the JEDEC seating plane (the plane the package rests on, through three balls around
-    its centre of gravity). Writes a CSV per ball and a PNG map.
+    diameter with --free-radius); pitch to neighbours; missing balls, and balls seen but
+    not measured (with the reason); coplanarity against the JEDEC seating plane (the plane
+    the package rests on, through three balls around its centre of gravity; every such
+    plane when the package may rock, the largest reported). Writes a CSV per ball and a
+    PNG map.
 
     Example: telefringe measure bga bga_3d --rows 24 --cols 24 --json bga.json
     """
