@@ -20,13 +20,14 @@ def rig_noise():
     return _rig_noise
 
 
-def _jacobian_error(problem, x) -> float:
+def _jacobian_error(problem, x, rel_step: float = 1e-6) -> float:
     """Largest error of ``problem.jacobian(x)`` against central differences of
-    ``problem.residuals``, relative to each column's largest entry."""
+    ``problem.residuals`` (step ``rel_step`` of each parameter, at least of 1e-3), relative
+    to each column's largest entry."""
     J = problem.jacobian(x).toarray()
     num = np.empty_like(J)
     for j in range(x.size):
-        h = 1e-6 * max(abs(x[j]), 1e-3)
+        h = rel_step * max(abs(x[j]), 1e-3)
         xp, xm = x.copy(), x.copy()
         xp[j] += h
         xm[j] -= h
@@ -37,6 +38,6 @@ def _jacobian_error(problem, x) -> float:
 
 @pytest.fixture(scope="session")
 def jacobian_error():
-    """``jacobian_error(problem, x) -> float``: a bundle problem's analytic Jacobian
-    against finite differences (relative to each column's scale)."""
+    """``jacobian_error(problem, x, rel_step=1e-6) -> float``: a bundle problem's analytic
+    Jacobian against finite differences (relative to each column's scale)."""
     return _jacobian_error
