@@ -177,7 +177,7 @@ def _adjust_with_rejection(build, obs_arrays, pose_lists, *, threshold, max_roun
     return problem, x, keeps, outliers, sigmas
 
 
-def calibrate_device(points_target, observations, *, pixel_size, image_size,
+def calibrate_device(points_target, observations, *, pixel_size=None, image_size,
                      principal_point: str = "estimate", principal_point_value=None,
                      principal_point_sigma: float | None = None, distortion: bool = True,
                      outlier_threshold: float = 5.0, max_rounds: int = 3,
@@ -193,7 +193,8 @@ def calibrate_device(points_target, observations, *, pixel_size, image_size,
     ----------
     points_target : (n_points, 3) array_like, mm, target points (z = 0).
     observations : (n_poses, n_points, 2) array_like, px; NaN where not observed.
-    pixel_size : (du, dv), mm (known: only m/du is identifiable).
+    pixel_size : (du, dv), mm, for a telecentric device (known: only m/du is
+        identifiable); a pinhole device needs none.
     image_size : (width, height), px.
     principal_point : {"estimate", "fixed"}
         "estimate": (u0, v0) free with a weak Gaussian prior at ``principal_point_value``

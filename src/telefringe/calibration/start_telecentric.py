@@ -170,6 +170,9 @@ def start_device(points_target, observations, *, pixel_size, image_size, princip
 
     Returns (device, start, used (n_used,) pose indices, R (n_used, 3, 3), T (n_used, 3)).
     """
+    if pixel_size is None:
+        raise CalibrationError("a telecentric device needs its pixel size (pixel_size_mm): "
+                               "only the magnification over the pixel pitch is seen")
     start = closed_form_device(points_target, observations, pixel_size=pixel_size,
                                principal_point=principal_point, min_points=min_points)
     used = np.flatnonzero(start.usable)

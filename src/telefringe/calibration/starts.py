@@ -8,17 +8,18 @@ Each model's start lives in ``start_<model>.py``; ``calibrate_device`` and
 
 from __future__ import annotations
 
-from telefringe.calibration import start_telecentric
+from telefringe.calibration import start_pinhole, start_telecentric
 from telefringe.calibration.errors import CalibrationError
 
 __all__ = ["MODELS", "PROJECTOR_SIDES", "device_start", "rig_rotations"]
 
 #: Models whose devices can be calibrated from planar target views.
-MODELS = ("telecentric",)
+MODELS = ("telecentric", "pinhole")
 #: Where the projector can be, seen in the camera image (settles a telecentric rig's
 #: mirror ambiguity).
 PROJECTOR_SIDES = tuple(start_telecentric.PROJECTOR_SIDES)
-_STARTS = {"telecentric": start_telecentric.start_device}
+_STARTS = {"telecentric": start_telecentric.start_device,
+           "pinhole": start_pinhole.start_device}
 
 
 def device_start(model: str):
