@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from telefringe.devices._checks import check_intrinsics, freeze_pose
 from telefringe.devices.base import ROTATION_NAMES
 from telefringe.geometry.distortion import (
     distort_normalized,
@@ -39,11 +40,6 @@ __all__ = ["PINHOLE_INTRINSIC_NAMES", "PINHOLE_POSE_NAMES", "PinholeIntrinsics",
 PINHOLE_INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 #: Its pose parameters: a left rotation perturbation (rad) and the translation (mm).
 PINHOLE_POSE_NAMES = ROTATION_NAMES + ("tx", "ty", "tz")
-
-
-def _number(val) -> bool:
-    return (isinstance(val, int | float | np.integer | np.floating)
-            and not isinstance(val, bool) and bool(np.isfinite(val)))
 
 
 @dataclass(frozen=True)
@@ -71,20 +67,7 @@ class PinholeIntrinsics:
     height: int = 0
 
     def __post_init__(self):
-        for name in PINHOLE_INTRINSIC_NAMES:
-            if not _number(getattr(self, name)):
-                raise ValueError(f"PinholeIntrinsics.{name} must be a finite number, got "
-                                 f"{getattr(self, name)!r}")
-        for name in ("fx", "fy"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"PinholeIntrinsics.{name} must be > 0, got "
-                                 f"{getattr(self, name)!r}")
-        for name in ("width", "height"):
-            val = getattr(self, name)
-            if not (_number(val) and float(val) == int(val) and int(val) >= 0):
-                raise ValueError(f"PinholeIntrinsics.{name} must be an integer >= 0 "
-                                 f"(pixels), got {val!r}")
-            object.__setattr__(self, name, int(val))
+        check_intrinsics(self, PINHOLE_INTRINSIC_NAMES, ("fx", "fy"))
 
     @property
     def distortion(self) -> tuple[float, float, float, float, float]:
@@ -122,18 +105,7 @@ class PinholeDevice:
     sees_depth = True
 
     def __post_init__(self):
-        R = np.array(self.R_dev_world, dtype=float)
-        t = np.array(self.t_dev, dtype=float).reshape(-1)
-        if R.shape != (3, 3) or not np.all(np.isfinite(R)):
-            raise ValueError("R_dev_world must be a finite (3, 3) array")
-        if not np.allclose(R @ R.T, np.eye(3), rtol=0.0, atol=1e-9) or np.linalg.det(R) < 0:
-            raise ValueError("R_dev_world must be a proper rotation")
-        if t.shape != (3,) or not np.all(np.isfinite(t)):
-            raise ValueError("t_dev must be a finite (3,) array (tx, ty, tz) in mm")
-        R.setflags(write=False)
-        t.setflags(write=False)
-        object.__setattr__(self, "R_dev_world", R)
-        object.__setattr__(self, "t_dev", t)
+        freeze_pose(self, "tx, ty, tz")
 
     @property
     def param_names(self) -> tuple[str, ...]:

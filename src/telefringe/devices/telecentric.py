@@ -31,6 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from telefringe.devices._checks import check_intrinsics, freeze_pose
 from telefringe.devices.base import ROTATION_NAMES
 from telefringe.geometry.distortion import distort_sensor, undistort_sensor
 from telefringe.geometry.rays import Rays
@@ -72,24 +73,8 @@ class Intrinsics:
     height: int = 0
 
     def __post_init__(self):
-        for name in ("m", "du", "dv", "u0", "v0", "k1", "s1", "s2"):
-            val = getattr(self, name)
-            ok = (isinstance(val, int | float | np.integer | np.floating)
-                  and not isinstance(val, bool) and bool(np.isfinite(val)))
-            if not ok:
-                raise ValueError(f"Intrinsics.{name} must be a finite number, got {val!r}")
-        for name in ("m", "du", "dv"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"Intrinsics.{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("width", "height"):
-            val = getattr(self, name)
-            ok = (isinstance(val, int | float | np.integer | np.floating)
-                  and not isinstance(val, bool) and bool(np.isfinite(val))
-                  and float(val) == int(val) and int(val) >= 0)
-            if not ok:
-                raise ValueError(f"Intrinsics.{name} must be an integer >= 0 (pixels), "
-                                 f"got {val!r}")
-            object.__setattr__(self, name, int(val))
+        check_intrinsics(self, ("m", "du", "dv", "u0", "v0", "k1", "s1", "s2"),
+                         ("m", "du", "dv"))
 
     @property
     def distortion(self) -> tuple[float, float, float]:
@@ -121,18 +106,7 @@ class TelecentricDevice:
     model = "telecentric"
 
     def __post_init__(self):
-        R = np.array(self.R_dev_world, dtype=float)
-        t = np.array(self.t_dev, dtype=float).reshape(-1)
-        if R.shape != (3, 3) or not np.all(np.isfinite(R)):
-            raise ValueError("R_dev_world must be a finite (3, 3) array")
-        if not np.allclose(R @ R.T, np.eye(3), rtol=0.0, atol=1e-9) or np.linalg.det(R) < 0:
-            raise ValueError("R_dev_world must be a proper rotation")
-        if t.shape != (2,) or not np.all(np.isfinite(t)):
-            raise ValueError("t_dev must be a finite (2,) array (tx, ty) in mm")
-        R.setflags(write=False)
-        t.setflags(write=False)
-        object.__setattr__(self, "R_dev_world", R)
-        object.__setattr__(self, "t_dev", t)
+        freeze_pose(self, "tx, ty")
 
     # -- construction helpers -------------------------------------------------
     @classmethod
