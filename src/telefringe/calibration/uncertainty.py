@@ -139,10 +139,15 @@ def point_jacobian(rig, xyz, *, weight_v=None) -> np.ndarray:
     # the camera line's direction: the null vector of the camera's point Jacobian
     d = np.cross(Jc_X[:, 0], Jc_X[:, 1])
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    # minimum-norm solution of Jc_X dX = -Jc_p dtheta_c: dX0 = -Jc_X^+ Jc_p
-    A = Jc_X @ np.swapaxes(Jc_X, 1, 2)  # (n, 2, 2)
-    pinv = np.swapaxes(Jc_X, 1, 2) @ np.linalg.inv(A)  # (n, 3, 2)
-    dX0_c = -pinv @ Jc_p  # (n, 3, Pc)
+    # minimum-norm solution of Jc_X dX = -Jc_p dtheta_c: dX0 = -Jc_X^+ Jc_p, with
+    # Jc_X^+ = Jc_X^T (Jc_X Jc_X^T)^-1 (the 2 x 2 inverse written out)
+    r0, r1 = Jc_X[:, 0], Jc_X[:, 1]
+    a, b, c = np.sum(r0 * r0, 1), np.sum(r0 * r1, 1), np.sum(r1 * r1, 1)
+    det = a * c - b * b
+    # rows of (Jc_X Jc_X^T)^-1 Jc_p, then back through Jc_X^T
+    y0 = (c[:, None] * Jc_p[:, 0] - b[:, None] * Jc_p[:, 1]) / det[:, None]
+    y1 = (a[:, None] * Jc_p[:, 1] - b[:, None] * Jc_p[:, 0]) / det[:, None]
+    dX0_c = -(r0[:, :, None] * y0[:, None, :] + r1[:, :, None] * y1[:, None, :])
     g = np.einsum("nij,nj->ni", Jp_X, d)  # (n, 2) projector px per mm along the line
     w = np.stack([np.ones(n), wv], axis=1)
     gwg = np.sum(w * g * g, axis=1)

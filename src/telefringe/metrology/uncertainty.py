@@ -338,9 +338,9 @@ def bga_uncertainty(measurement, cloud, calibration, *, weight_v=None,
 
     Cost: one point Jacobian per ball and one plane linearisation over the substrate (its
     points: valid points within ``substrate_k`` RMS of it), then the grid stage (grid
-    registration, pitch, seating plane) repeated twice per principal direction of the
-    covariance (about 22 for a telecentric rig): no per-pixel work beyond the substrate's
-    sum.
+    registration, pitch, the coplanarity on its seating plane) repeated twice per
+    principal direction of the covariance (about 22 for a telecentric rig): no per-pixel
+    work beyond the substrate's sum.
     """
     from telefringe.metrology.bga.coplanarity import seating_plane_coplanarity
     from telefringe.metrology.bga.grid import _grid_local, _register_grid
@@ -390,10 +390,33 @@ def bga_uncertainty(measurement, cloud, calibration, *, weight_v=None,
             mid_local = np.array([(cols - 1) / 2.0, (rows - 1) / 2.0]) * pitch + origin_local
             mid_plane = np.array([[c_, -s_], [s_, c_]]) @ mid_local
             cog = mid_plane[0] * T[0] + mid_plane[1] * T[1] + d * n
-        cop = seating_plane_coplanarity(Ap, cog, reference=Plane(n, d),
-                                        cog_tolerance=cop_tol, sigma_heights=sig_h)
+        if fixed_seat:
+            cop_value = _seated(Ap, n)
+        else:
+            cop_value = float(seating_plane_coplanarity(
+                Ap, cog, reference=Plane(n, d), cog_tolerance=cop_tol,
+                sigma_heights=sig_h).value)
         height = Ap @ n - d
-        return height, local, px, py, float(cop.value)
+        return height, local, px, py, cop_value
+
+    # the coplanarity on its seating plane held on its three contacts, the farthest ball
+    # held too (a linear uncertainty cannot describe a change of seat); the whole
+    # seating-plane search again only when the package rocks between seats
+    cop = m.coplanarity
+    contacts = np.asarray(cop.contacts, dtype=int)
+    far = int(np.argmax(np.asarray(cop.distances)))
+
+    def _seated(Ap, n):
+        p0, p1, p2 = Ap[contacts[:3]]
+        nn = np.cross(p1 - p0, p2 - p0)
+        nn = nn / np.linalg.norm(nn)
+        if nn @ n < 0:
+            nn = -nn
+        return float(nn @ p0 - nn @ Ap[far])
+
+    fixed_seat = bool(not cop.rocks and contacts.size == 3
+                      and abs(_seated(A, sub.normal) - float(cop.value))
+                      <= 1e-9 + 1e-6 * abs(float(cop.value)))
 
     def flat(dA, dp):
         h, loc, px, py, cop = grid_q(dA, dp)
