@@ -105,3 +105,50 @@ def surface_truth(rig: Rig, shape=SHAPE, *, seed=0, depth=1.0):
     X = o + s[..., None] * d
     up, vp = rig.projector.project(X)
     return X, up, vp
+
+
+def telecentric_camera_2(shape=SHAPE, angle_deg=-20.0):
+    """A second telecentric camera, tilted about world y from the first."""
+    rows, cols = shape
+    a = np.radians(angle_deg)
+    R = rotation_from_rotvec([0.0, -a, 0.0]) @ rotation_from_rotvec([0.01, 0.0, -0.02]) @ DOWN
+    return TelecentricDevice(
+        Intrinsics(m=1.0, du=0.06, dv=0.06, u0=(cols - 1) / 2 - 0.8, v0=(rows - 1) / 2 + 0.4,
+                   k1=-8e-4, s1=-1e-4, s2=2e-4, width=cols, height=rows), R,
+        np.array([-0.1, 0.05]))
+
+
+def stereo_rig_of(kind, shape=SHAPE) -> Rig:
+    """Two cameras (``pp``: pinhole, ``tt``: telecentric) and a projector."""
+    if kind == "pp":
+        c1 = pinhole_camera(shape)
+        c2 = pinhole((-70.0, 3.0, 185.0), f=shape[1] * 200.0 / 4.0, size=(shape[1], shape[0]),
+                     dist=(0.1, -0.2, -3e-4, 2e-4, 0.0), pp=(-0.7, 0.9), roll=-0.01)
+        prj = pinhole_projector()
+    else:
+        c1 = telecentric_camera(shape)
+        c2 = telecentric_camera_2(shape)
+        prj = telecentric_projector()
+    return Rig(cameras={"camera": c1, "camera_2": c2}, projector=prj)
+
+
+def plane_hits(cam, shape, plane=(0.05, -0.03, 0.2)):
+    """Points where each pixel's line meets the plane z = a x + b y + c (mm)."""
+    a, b, c = plane
+    rows, cols = shape
+    v, u = np.mgrid[0:rows, 0:cols].astype(float)
+    o, d = cam.backproject(u, v)
+    o = np.broadcast_to(o, shape + (3,))
+    d = np.broadcast_to(d, shape + (3,))
+    n = np.array([-a, -b, 1.0])
+    s = (c - o @ n) / (d @ n)
+    return o + s[..., None] * d
+
+
+def stereo_truth(rig: Rig, shape=SHAPE, plane=(0.05, -0.03, 0.2)):
+    """The plane seen by both cameras: the first camera's true points, and each camera's
+    projector coordinates (u_p, v_p)."""
+    cams = list(rig.cameras.values())
+    X1 = plane_hits(cams[0], shape, plane)
+    X2 = plane_hits(cams[1], shape, plane)
+    return X1, rig.projector.project(X1), rig.projector.project(X2)
