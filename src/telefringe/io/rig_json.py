@@ -250,12 +250,13 @@ def rig_to_json(calib: RigCalibration) -> dict:
 
 
 def bare_rig_json(rig: Rig, *, reference_pose: str = "", phase_errors: dict | None = None,
-                  source: dict | None = None) -> dict:
+                  source: dict | None = None, world_definition: str | None = None) -> dict:
     """A ``rig.json`` document (a dict, version 2) of a rig's devices without a
     calibration report (the format allows leaving it out: a rig known otherwise, e.g. a
     simulation's truth or an imported OpenCV calibration), with the projector's
     nonlinearity models ``(axis, periods, steps) -> PhaseErrorModel`` and a free-form
-    ``source`` (where the rig came from) when given.
+    ``source`` (where the rig came from) when given. ``world_definition`` says in words
+    what the world frame is (default: the calibration target at the reference pose).
 
     Raises InputError for a camera name rig.json cannot hold (``camera``,
     ``camera_<n>``), a device of a model it does not know, or one without image size.
@@ -273,7 +274,8 @@ def bare_rig_json(rig: Rig, *, reference_pose: str = "", phase_errors: dict | No
     doc = {"format": RIG_FORMAT, "version": RIG_VERSION,
            "units": {"length": "mm", "image": "px", "angle": "rad"},
            "models": {m: _MODELS[m] for m in models if m in _MODELS},
-           "world_frame": {"definition": _WORLD, "reference_pose": reference_pose},
+           "world_frame": {"definition": world_definition or _WORLD,
+                           "reference_pose": reference_pose},
            "cameras": list(rig.cameras)}
     for n in names:
         doc[n] = _device_json(_device_of(rig, n), n)
@@ -295,17 +297,20 @@ def _phase_errors_json(models: dict) -> dict:
                        for (axis, periods, steps), m in sorted(models.items())]}
 
 
-def save_rig(path, calib, *, force: bool = False, source: dict | None = None) -> Path:
+def save_rig(path, calib, *, force: bool = False, source: dict | None = None,
+             world_definition: str | None = None) -> Path:
     """Write ``calib`` (a :class:`RigCalibration`, or a bare :class:`Rig`) to ``path`` as
     ``rig.json`` version 2 (atomically; an existing file is replaced only with ``force``).
     A calibration without poses (e.g. from :func:`bare_calibration`) is written without a
-    report. Returns the path."""
+    report; ``source`` and ``world_definition`` as in :func:`bare_rig_json`. Returns the
+    path."""
     path = Path(path)
     if isinstance(calib, Rig):
-        doc = bare_rig_json(calib, source=source)
+        doc = bare_rig_json(calib, source=source, world_definition=world_definition)
     elif not len(calib.pose_names) and not np.any(np.isfinite(calib.covariance)):
         doc = bare_rig_json(calib.rig, reference_pose=calib.reference_pose,
-                            phase_errors=getattr(calib, "phase_errors", None), source=source)
+                            phase_errors=getattr(calib, "phase_errors", None), source=source,
+                            world_definition=world_definition)
     else:
         doc = rig_to_json(calib)
         if source:
