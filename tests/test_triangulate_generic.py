@@ -166,3 +166,21 @@ def test_triangulate_pixels_and_errors():
     same = Rig(cam, rig_of("pp").camera.with_pose(cam.R_dev_world, cam.t_dev + [0.0, 1.0, 0.0]))
     with pytest.raises(TriangulationError, match="barely changes"):
         generic.triangulate(same, Coords(np.full(SHAPE, 30.0)))
+
+
+def test_marker_centres_on_a_pinhole_cloud():
+    """metrology.plate.marker_centres_3d reads each point's own camera line (a pinhole
+    camera's cloud has no common direction): on the plane z = 0 a marker centre lands on
+    the camera pixel's point of that plane."""
+    from telefringe.metrology.plate import marker_centres_3d
+
+    rig = rig_of("pp")
+    X, up, vp = surface_truth(rig, depth=0.0)
+    sig = np.full(SHAPE, 0.05)
+    cloud = generic.triangulate(rig, Coords(up, vp, None, sig, sig))
+    with pytest.raises(TriangulationError, match="no common direction"):
+        _ = cloud.direction
+    mc = marker_centres_3d(cloud, [[30.4, 20.7]], inner_px=3.0, outer_px=8.0)
+    o, d = rig.camera.backproject(30.4, 20.7)
+    truth = o - o[2] / d[2] * d
+    assert np.max(np.abs(mc.xyz[0] - truth)) < 1e-6
