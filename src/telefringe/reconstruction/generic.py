@@ -49,6 +49,7 @@ import numpy as np
 
 from telefringe.devices.rig import Rig
 from telefringe.geometry.distortion import ConvergenceError
+from telefringe.reconstruction import _generic_kernels as _gk
 from telefringe.reconstruction._rig import as_rig as _as_rig
 from telefringe.reconstruction.cloud import (
     FLAG_INCONSISTENT,
@@ -255,7 +256,7 @@ class GenericTriangulator:
 
     def triangulate(self, coords, *, max_residual: float | None = 1.0,
                     max_sigma_z: float | None = None, use_v_p: bool = True,
-                    check_bounds: bool = True) -> PointCloud:
+                    check_bounds: bool = True, compiled: bool = True) -> PointCloud:
         """Triangulate decoded projector coordinates; see :func:`triangulate`."""
         obs = _observations(coords, self.shape)
         n = int(np.prod(self.shape))
@@ -265,6 +266,15 @@ class GenericTriangulator:
         out = _Out(n)
         if obs.has_v:
             out.res = np.full(n, np.nan)
+        solver = _gk.solver_for(proj) if compiled else None
+        if solver is not None:
+            self._check_sample(obs, use_v_p)
+            solver(proj, self.origin, self.direction, obs.a, obs.b, obs.sa, obs.sb,
+                   obs.mask, obs.has_v and use_v_p, obs.swap, W, H,
+                   np.inf if max_residual is None else max_residual,
+                   np.inf if max_sigma_z is None else max_sigma_z, out.xyz, out.sig,
+                   out.res, out.flags, out.ok)
+            return self._cloud(out)
         o_full = np.broadcast_to(self.origin, (n, 3))
         d_full = np.broadcast_to(self.direction, (n, 3))
         for lo in range(0, n, _CHUNK):
@@ -272,6 +282,27 @@ class GenericTriangulator:
             sl = slice(lo, hi)
             _solve_chunk(proj, o_full[sl], d_full[sl], self.s_ref[sl], self.step,
                          self.bad[sl], obs, sl, use_v_p, max_residual, max_sigma_z, W, H, out)
+        return self._cloud(out)
+
+    def _check_sample(self, obs: _Obs, use_v_p: bool):
+        """The sensitivity check of the reference path on up to 512 valid pixels, at the
+        rig's working depth (the compiled solvers do not make it)."""
+        valid = obs.mask & np.isfinite(obs.a) & ~self.bad
+        idx = np.flatnonzero(valid)
+        if idx.size == 0:
+            return
+        idx = idx[np.linspace(0, idx.size - 1, min(idx.size, 512)).astype(np.intp)]
+        n = int(np.prod(self.shape))
+        o = np.broadcast_to(self.origin, (n, 3))[idx]
+        d = np.broadcast_to(self.direction, (n, 3))[idx]
+        X = o + self.s_ref[idx, None] * d
+        with np.errstate(all="ignore"):
+            _, _, ga, gb, na, nb = _project_slope(self.rig.projector, X, d, obs.swap)
+            combine = obs.has_v and use_v_p
+            ratio = np.hypot(ga, gb) / np.maximum(na, nb) if combine else np.abs(ga) / na
+        _check_sensitivity(ratio[np.isfinite(ratio)], obs, use_v_p)
+
+    def _cloud(self, out: _Out) -> PointCloud:
         xyz = out.xyz.reshape(self.shape + (3,))
         return PointCloud._adopt(xyz, out.ok.reshape(self.shape),
                                  out.sig.reshape(self.shape),
@@ -552,7 +583,7 @@ _CACHE = _Cache(GENERIC_CACHE_BYTES)
 
 def triangulate(rig, coords, *, max_residual: float | None = 1.0,
                 max_sigma_z: float | None = None, use_v_p: bool = True,
-                check_bounds: bool = True) -> PointCloud:
+                check_bounds: bool = True, compiled: bool = True) -> PointCloud:
     """Triangulate decoded projector coordinates with any camera and projector.
 
     Parameters
@@ -575,6 +606,10 @@ def triangulate(rig, coords, *, max_residual: float | None = 1.0,
         Combine ``v_p`` with ``u_p`` (default); when false, ``v_p`` only checks.
     check_bounds : bool, keyword-only
         Flag solutions outside the projector's image (when it declares its size).
+    compiled : bool, keyword-only
+        Use the projector model's compiled solver where there is one (a pinhole
+        projector; the same equations, tolerance and flags, tested against this path);
+        False: the NumPy reference.
 
     Returns
     -------
@@ -603,7 +638,7 @@ def triangulate(rig, coords, *, max_residual: float | None = 1.0,
         raise TriangulationError(f"u_p must be a (rows, cols) array, got shape {shape}")
     tri = _CACHE.get(_as_rig(rig), shape, GenericTriangulator.for_shape)
     return tri.triangulate(coords, max_residual=max_residual, max_sigma_z=max_sigma_z,
-                           use_v_p=use_v_p, check_bounds=check_bounds)
+                           use_v_p=use_v_p, check_bounds=check_bounds, compiled=compiled)
 
 
 @dataclass(frozen=True)
@@ -616,7 +651,7 @@ class _Coords:
 
 
 def triangulate_pixels(rig, u_c, v_c, u_p, v_p=None, *, sigma_u_p=None, sigma_v_p=None,
-                       max_residual: float | None = None) -> PointCloud:
+                       max_residual: float | None = None, compiled: bool = True) -> PointCloud:
     """Triangulate arbitrary (sub-pixel) camera pixels, e.g. marker centres.
 
     Parameters
@@ -627,6 +662,7 @@ def triangulate_pixels(rig, u_c, v_c, u_p, v_p=None, *, sigma_u_p=None, sigma_v_
         None; ``u_p`` may be None when ``v_p`` is given).
     sigma_u_p, sigma_v_p : (n,) array_like or None, their standard uncertainties (px).
     max_residual : float or None, as in :func:`triangulate` (default: no check).
+    compiled : bool, as in :func:`triangulate`.
 
     Returns
     -------
@@ -649,4 +685,5 @@ def triangulate_pixels(rig, u_c, v_c, u_p, v_p=None, *, sigma_u_p=None, sigma_v_
 
     tri = GenericTriangulator.for_pixels(rig, u_c, v_c)
     c = _Coords(row(u_p), row(v_p), None, row(sigma_u_p), row(sigma_v_p))
-    return tri.triangulate(c, max_residual=max_residual, check_bounds=False)
+    return tri.triangulate(c, max_residual=max_residual, check_bounds=False,
+                           compiled=compiled)

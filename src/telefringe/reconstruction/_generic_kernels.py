@@ -1,0 +1,314 @@
+"""Compiled solvers of :mod:`telefringe.reconstruction.generic` for one projector model
+each, chosen by the projector's ``model`` (:func:`solver_for`); the NumPy path in
+``generic`` is the reference they are tested against (same equations, same tolerance,
+same flags).
+
+Pinhole projector: the camera line ``X(s) = o + s d`` in the projector's frame is ``Y(s) =
+Y0 + s Yd``; its normalised image ``(Y0 + s Yd)_{x,y} / (Y0 + s Yd)_z`` is distorted with
+OpenCV's model. Start: the root without distortion (the line meets the plane of the
+projector column ``(u_P - cx) / fx``: exact for an undistorted projector); then Newton on
+s (Gauss-Newton with both axes, as the reference), halving steps that go behind the
+projector, to ``|step| <= 1e-12 (1 + |s|)`` mm within 50 steps. The fold check is the
+sign test of the distortion's Jacobian at the solution (where the reference's round trip
+through the projector's back-projection fails).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from telefringe.devices import _pinhole_kernels as _pk
+from telefringe.reconstruction.cloud import (
+    FLAG_INCONSISTENT,
+    FLAG_NO_PHASE,
+    FLAG_NOT_CONVERGED,
+    FLAG_OUTSIDE,
+    FLAG_UNCERTAIN,
+)
+
+__all__ = ["solver_for"]
+
+_TOL_S = 1e-12
+_MAX_ITER = 50
+
+
+def solver_for(projector):
+    """The compiled solve for this projector's model, or None (then the NumPy path)."""
+    if getattr(projector, "model", None) == "pinhole" and hasattr(projector, "intrinsics"):
+        return _run_pinhole
+    return None
+
+
+def _run_pinhole(proj, O, D, a_obs, b_obs, sa, sb, mask, combine, swap, W, H, max_res,
+                 max_sz, xyz, sig, res, flags, ok):
+    """Solve every pixel (flat arrays, n) with a pinhole projector into the outputs."""
+    intr, R, t = _pk.kernel_args(proj)
+    has_b = b_obs is not None
+    n = a_obs.shape[0]
+    if b_obs is None:
+        b_obs = a_obs
+        sb = sa
+    if res is None:
+        res = np.empty(n)
+    O2 = np.ascontiguousarray(O.reshape(-1, 3))
+    D2 = np.ascontiguousarray(D.reshape(-1, 3))
+    _solve_pinhole(O2, D2, int(O2.shape[0] > 1), int(D2.shape[0] > 1), a_obs, b_obs, sa, sb, mask,
+                   has_b, combine, swap, intr, R, t, float(W), float(H), float(max_res),
+                   float(max_sz), xyz, sig, res, flags, ok)
+
+
+@njit(inline="always")
+def _eval(s, Y00, Y01, Y02, Yd0, Yd1, Yd2, intr):  # pragma: no cover - numba
+    """Projector pixel (u, v), its derivatives along the line (du/ds, dv/ds), the
+    distortion's Jacobian and the depth in the projector at line parameter s."""
+    fx, fy, cx, cy, k1, k2, p1, p2, k3 = intr
+    Y0 = Y00 + s * Yd0
+    Y1 = Y01 + s * Yd1
+    Y2 = Y02 + s * Yd2
+    iz = 1.0 / Y2
+    x = Y0 * iz
+    y = Y1 * iz
+    xd, yd = _pk.distort_point(x, y, k1, k2, p1, p2, k3)
+    a, b, c, d = _pk.distortion_jacobian(x, y, k1, k2, p1, p2, k3)
+    dx = (Yd0 - x * Yd2) * iz
+    dy = (Yd1 - y * Yd2) * iz
+    gu = fx * (a * dx + b * dy)
+    gv = fy * (c * dx + d * dy)
+    return fx * xd + cx, fy * yd + cy, gu, gv, a, b, c, d, Y2
+
+
+# The fast pass: from the undistorted start, _N_FAST Newton (Gauss-Newton) steps with no
+# data-dependent branch, then the error left is estimated from the quadratic convergence:
+# next step ~ |u''/(2 u')| step^2, with u''/u' ~ -2 Yd_z / Y_z the line's perspective
+# (taken twice for the distortion's share, which is smaller by the field angle times the
+# distortion). Pixels above the tolerance, behind the projector or with a non-finite step
+# are solved again by the slow pass, which iterates as the NumPy reference does.
+_N_FAST = 2
+_CHUNK = 4096
+
+
+@njit(inline="always")
+def _line_in_projector(o0, o1, o2, d0, d1, d2, R9, t0, t1, t2):  # pragma: no cover - numba
+    return (R9[0] * o0 + R9[1] * o1 + R9[2] * o2 + t0, R9[3] * o0 + R9[4] * o1 + R9[5] * o2 + t1,
+            R9[6] * o0 + R9[7] * o1 + R9[8] * o2 + t2, R9[0] * d0 + R9[1] * d1 + R9[2] * d2,
+            R9[3] * d0 + R9[4] * d1 + R9[5] * d2, R9[6] * d0 + R9[7] * d1 + R9[8] * d2)
+
+
+@njit(inline="always")
+def _step(s, ua, ub, wa, wb, Y, intr, combine, swap):  # pragma: no cover - numba
+    Y00, Y01, Y02, Yd0, Yd1, Yd2 = Y
+    u, v, gu, gv, a, b, c, d, z = _eval(s, Y00, Y01, Y02, Yd0, Yd1, Yd2, intr)
+    pa = v if swap else u
+    pb = u if swap else v
+    ga = gv if swap else gu
+    gb = gu if swap else gv
+    if combine:
+        step = (wa * ga * (pa - ua) + wb * gb * (pb - ub)) / (wa * ga * ga + wb * gb * gb)
+    else:
+        step = (pa - ua) / ga
+    return step, u, v, pa, pb, ga, gb, a, b, c, d, z
+
+
+@njit(inline="always")
+def _gu_of(ga, gb, swap):  # pragma: no cover - numba
+    return gb if swap else ga
+
+
+@njit(inline="always")
+def _gv_of(ga, gb, swap):  # pragma: no cover - numba
+    return ga if swap else gb
+
+
+@njit(inline="always")
+def _plane_root(xt, Y, swap):  # pragma: no cover - numba
+    # where the line meets the plane of undistorted normalised projector coordinate xt
+    Y00, Y01, Y02, Yd0, Yd1, Yd2 = Y
+    if swap:
+        return (Y01 - xt * Y02) / (xt * Yd2 - Yd1)
+    return (Y00 - xt * Y02) / (xt * Yd2 - Yd0)
+
+
+@njit(inline="always")
+def _start(ua, Y, intr, fa, ca, swap):  # pragma: no cover - numba
+    # the root without distortion, then once more with the distortion's offset there
+    # taken off the target (a fixed-point step: its error shrinks by the distortion's
+    # gradient, ~1e-2)
+    xt = (ua - ca) / fa
+    s0 = _plane_root(xt, Y, swap)
+    Y00, Y01, Y02, Yd0, Yd1, Yd2 = Y
+    iz = 1.0 / (Y02 + s0 * Yd2)
+    x = (Y00 + s0 * Yd0) * iz
+    y = (Y01 + s0 * Yd1) * iz
+    xd, yd = _pk.distort_point(x, y, intr[4], intr[5], intr[6], intr[7], intr[8])
+    off = yd - y if swap else xd - x
+    s1 = _plane_root(xt - off, Y, swap)
+    return s1 if abs(s1) < np.inf else s0
+
+
+@njit(error_model="numpy")
+def _finish(i, s, conv, o0, o1, o2, d0, d1, d2, ua, ub, s_a, s_b, u, v, pa, pb, ga, gb, a, b,
+            c, d, z, has_b, combine, W, H, max_res, max_sz, xyz, sig, res, flags,
+            ok):  # pragma: no cover - numba
+    if combine:
+        sg = 1.0 / np.sqrt(ga * ga / (s_a * s_a) + gb * gb / (s_b * s_b))
+    else:
+        sg = s_a / abs(ga)
+    r = np.sqrt((pa - ua) ** 2 + (pb - ub) ** 2) if has_b else np.nan
+    res[i] = r
+    inside = (u >= -0.5) & (u <= W - 0.5) & (v >= -0.5) & (v <= H - 0.5)
+    conv = conv & (z > 0.0) & _pk.is_unfolded(a, b, c, d)
+    f = (FLAG_INCONSISTENT * (r > max_res) + FLAG_OUTSIDE * (1 - inside)
+         + FLAG_NOT_CONVERGED * (1 - conv) + FLAG_UNCERTAIN * (sg * abs(d2) > max_sz))
+    flags[i] = f
+    good = f == 0
+    ok[i] = good
+    sig[i] = sg if good else np.nan
+    xyz[i, 0] = o0 + s * d0 if good else np.nan
+    xyz[i, 1] = o1 + s * d1 if good else np.nan
+    xyz[i, 2] = o2 + s * d2 if good else np.nan
+
+
+@njit(inline="always")
+def _pixel_in(i, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask,
+              combine):  # pragma: no cover - numba
+    io = i * o_step  # 0 for a line origin (or direction) shared by every pixel
+    idd = i * d_step
+    o0, o1, o2 = O[io, 0], O[io, 1], O[io, 2]
+    d0, d1, d2 = D[idd, 0], D[idd, 1], D[idd, 2]
+    ua = a_obs[i]
+    ub = b_obs[i]
+    phase = mask[i] & (abs(ua) < np.inf)
+    if combine:
+        phase = phase & (abs(ub) < np.inf)
+    line = (abs(o0) < np.inf) & (abs(d0) < np.inf)
+    s_a = sa[i]
+    s_b = sb[i]
+    wa = 1.0 / (s_a * s_a) if s_a > 0.0 else 1.0
+    wb = 1.0 / (s_b * s_b) if s_b > 0.0 else 1.0
+    return o0, o1, o2, d0, d1, d2, ua, ub, phase, line, s_a, s_b, wa, wb
+
+
+@njit(inline="always")
+def _no_point(i, f, xyz, sig, res, flags, ok):  # pragma: no cover - numba
+    flags[i] = f
+    ok[i] = False
+    sig[i] = np.nan
+    res[i] = np.nan
+    xyz[i, 0] = np.nan
+    xyz[i, 1] = np.nan
+    xyz[i, 2] = np.nan
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fast_block(lo, hi, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b, combine,
+                swap, intr, R, t, W, H, max_res, max_sz, xyz, sig, res, flags,
+                ok):  # pragma: no cover - numba
+    # no data-dependent branch: invalid pixels are computed too (NaN) and masked by the
+    # flags, so that the loop can vectorise
+    fa, ca = (intr[1], intr[3]) if swap else (intr[0], intr[2])
+    R9 = (R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2])
+    t0, t1, t2 = t[0], t[1], t[2]
+    n_slow = 0
+    for i in range(lo, hi):
+        o0, o1, o2, d0, d1, d2, ua, ub, phase, line, s_a, s_b, wa, wb = _pixel_in(
+            i, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, combine)
+        Y = _line_in_projector(o0, o1, o2, d0, d1, d2, R9, t0, t1, t2)
+        s = _start(ua, Y, intr, fa, ca, swap)
+        step = 0.0
+        u = v = pa = pb = ga = gb = a = b = c = d = z = 0.0
+        for _ in range(_N_FAST):
+            step, u, v, pa, pb, ga, gb, a, b, c, d, z = _step(s, ua, ub, wa, wb, Y, intr,
+                                                               combine, swap)
+            s = s - step
+        # the last evaluation was at s + step: its pixel moved to s to first order, its
+        # slopes are those of the solution to a relative 1e-12 once converged
+        u = u - step * _gu_of(ga, gb, swap)
+        v = v - step * _gv_of(ga, gb, swap)
+        pa = pa - step * ga
+        pb = pb - step * gb
+        est = abs(2.0 * Y[5] / z) * step * step
+        conv = (est <= _TOL_S * (1.0 + abs(s))) & (Y[2] + s * Y[5] > 0.0)
+        conv = conv & _pk.is_unfolded(a, b, c, d)
+        if combine:
+            sg = 1.0 / np.sqrt(ga * ga / (s_a * s_a) + gb * gb / (s_b * s_b))
+        else:
+            sg = s_a / abs(ga)
+        r = np.sqrt((pa - ua) ** 2 + (pb - ub) ** 2) if has_b else np.nan
+        inside = (u >= -0.5) & (u <= W - 0.5) & (v >= -0.5) & (v <= H - 0.5)
+        f = (FLAG_INCONSISTENT * (r > max_res) + FLAG_OUTSIDE * (1 - inside)
+             + FLAG_UNCERTAIN * (sg * abs(d2) > max_sz))
+        solved = phase & line
+        # not converged here (or beyond the fold): the slow pass decides
+        slow = solved & (1 - conv)
+        n_slow += slow
+        f = FLAG_NOT_CONVERGED if slow else f
+        f = f if solved else (FLAG_NO_PHASE if not phase else FLAG_NOT_CONVERGED)
+        flags[i] = f
+        good = f == 0
+        ok[i] = good
+        res[i] = r if solved else np.nan
+        sig[i] = sg if good else np.nan
+        xyz[i, 0] = o0 + s * d0 if good else np.nan
+        xyz[i, 1] = o1 + s * d1 if good else np.nan
+        xyz[i, 2] = o2 + s * d2 if good else np.nan
+    return n_slow
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _slow_pixels(O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b, combine, swap,
+                 intr, R, t, W, H, max_res, max_sz, xyz, sig, res, flags,
+                 ok):  # pragma: no cover - numba
+    # the pixels the fast pass left: iterate as the reference does
+    fa, ca = (intr[1], intr[3]) if swap else (intr[0], intr[2])
+    R9 = (R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2])
+    t0, t1, t2 = t[0], t[1], t[2]
+    for i in range(a_obs.shape[0]):
+        if flags[i] != FLAG_NOT_CONVERGED:
+            continue
+        o0, o1, o2, d0, d1, d2, ua, ub, phase, line, s_a, s_b, wa, wb = _pixel_in(
+            i, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, combine)
+        if not (phase & line):
+            continue
+        Y = _line_in_projector(o0, o1, o2, d0, d1, d2, R9, t0, t1, t2)
+        s = _start(ua, Y, intr, fa, ca, swap)
+        if not np.isfinite(s):
+            s = 0.0
+        conv = False
+        for _ in range(_MAX_ITER):
+            step = _step(s, ua, ub, wa, wb, Y, intr, combine, swap)[0]
+            if not np.isfinite(step):
+                break
+            s_new = s - step
+            for _h in range(30):  # behind the projector: halve the step
+                if Y[2] + s_new * Y[5] > 0.0:
+                    break
+                step = 0.5 * step
+                s_new = s - step
+            s = s_new
+            if abs(step) <= _TOL_S * (1.0 + abs(s)):
+                conv = True
+                break
+        _, u, v, pa, pb, ga, gb, a, b, c, d, z = _step(s, ua, ub, wa, wb, Y, intr, combine,
+                                                        swap)
+        _finish(i, s, conv & np.isfinite(s), o0, o1, o2, d0, d1, d2, ua, ub, s_a, s_b, u, v,
+                pa, pb, ga, gb, a, b, c, d, z, has_b, combine, W, H, max_res, max_sz, xyz,
+                sig, res, flags, ok)
+
+
+@njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _solve_pinhole(O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b, combine, swap,
+                   intr, R, t, W, H, max_res, max_sz, xyz, sig, res, flags,
+                   ok):  # pragma: no cover - numba
+    n = a_obs.shape[0]
+    n_chunks = (n + _CHUNK - 1) // _CHUNK
+    n_slow = 0
+    for k in prange(n_chunks):
+        lo = k * _CHUNK
+        hi = min(lo + _CHUNK, n)
+        n_slow += _fast_block(lo, hi, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b,
+                              combine, swap, intr, R, t, W, H, max_res, max_sz, xyz, sig, res,
+                              flags, ok)
+    if n_slow:
+        _slow_pixels(O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b, combine, swap,
+                     intr, R, t, W, H, max_res, max_sz, xyz, sig, res, flags, ok)
