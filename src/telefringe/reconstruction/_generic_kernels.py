@@ -42,7 +42,8 @@ def solver_for(projector):
 
 def _run_pinhole(proj, O, D, a_obs, b_obs, sa, sb, mask, combine, swap, W, H, max_res,
                  max_sz, xyz, sig, res, flags, ok):
-    """Solve every pixel (flat arrays, n) with a pinhole projector into the outputs."""
+    """Solve every pixel with a pinhole projector: the lines' points and directions as
+    planes O, D (3, n), the observations (n,), into xyz (3, n) and the flat outputs."""
     intr, R, t = _pk.kernel_args(proj)
     has_b = b_obs is not None
     n = a_obs.shape[0]
@@ -51,11 +52,8 @@ def _run_pinhole(proj, O, D, a_obs, b_obs, sa, sb, mask, combine, swap, W, H, ma
         sb = sa
     if res is None:
         res = np.empty(n)
-    O2 = np.ascontiguousarray(O.reshape(-1, 3))
-    D2 = np.ascontiguousarray(D.reshape(-1, 3))
-    _solve_pinhole(O2, D2, int(O2.shape[0] > 1), int(D2.shape[0] > 1), a_obs, b_obs, sa, sb, mask,
-                   has_b, combine, swap, intr, R, t, float(W), float(H), float(max_res),
-                   float(max_sz), xyz, sig, res, flags, ok)
+    _solve_pinhole(O, D, a_obs, b_obs, sa, sb, mask, has_b, combine, swap, intr, R, t,
+                   float(W), float(H), float(max_res), float(max_sz), xyz, sig, res, flags, ok)
 
 
 @njit(inline="always")
@@ -164,18 +162,16 @@ def _finish(i, s, conv, o0, o1, o2, d0, d1, d2, ua, ub, s_a, s_b, u, v, pa, pb, 
     good = f == 0
     ok[i] = good
     sig[i] = sg if good else np.nan
-    xyz[i, 0] = o0 + s * d0 if good else np.nan
-    xyz[i, 1] = o1 + s * d1 if good else np.nan
-    xyz[i, 2] = o2 + s * d2 if good else np.nan
+    xyz[0][i] = o0 + s * d0 if good else np.nan
+    xyz[1][i] = o1 + s * d1 if good else np.nan
+    xyz[2][i] = o2 + s * d2 if good else np.nan
 
 
 @njit(inline="always")
-def _pixel_in(i, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask,
-              combine):  # pragma: no cover - numba
-    io = i * o_step  # 0 for a line origin (or direction) shared by every pixel
-    idd = i * d_step
-    o0, o1, o2 = O[io, 0], O[io, 1], O[io, 2]
-    d0, d1, d2 = D[idd, 0], D[idd, 1], D[idd, 2]
+def _pixel(i, O, D, a_obs, b_obs, sa, sb, mask, combine):  # pragma: no cover - numba
+    # O, D: the planes as tuples of three 1-D arrays
+    o0, o1, o2 = O[0][i], O[1][i], O[2][i]
+    d0, d1, d2 = D[0][i], D[1][i], D[2][i]
     ua = a_obs[i]
     ub = b_obs[i]
     phase = mask[i] & (abs(ua) < np.inf)
@@ -189,19 +185,8 @@ def _pixel_in(i, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask,
     return o0, o1, o2, d0, d1, d2, ua, ub, phase, line, s_a, s_b, wa, wb
 
 
-@njit(inline="always")
-def _no_point(i, f, xyz, sig, res, flags, ok):  # pragma: no cover - numba
-    flags[i] = f
-    ok[i] = False
-    sig[i] = np.nan
-    res[i] = np.nan
-    xyz[i, 0] = np.nan
-    xyz[i, 1] = np.nan
-    xyz[i, 2] = np.nan
-
-
 @njit(cache=True, nogil=True, error_model="numpy")
-def _fast_block(lo, hi, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b, combine,
+def _fast_block(O, D, a_obs, b_obs, sa, sb, mask, has_b, combine,
                 swap, intr, R, t, W, H, max_res, max_sz, xyz, sig, res, flags,
                 ok):  # pragma: no cover - numba
     # no data-dependent branch: invalid pixels are computed too (NaN) and masked by the
@@ -210,9 +195,9 @@ def _fast_block(lo, hi, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b,
     R9 = (R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2])
     t0, t1, t2 = t[0], t[1], t[2]
     n_slow = 0
-    for i in range(lo, hi):
-        o0, o1, o2, d0, d1, d2, ua, ub, phase, line, s_a, s_b, wa, wb = _pixel_in(
-            i, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, combine)
+    for i in range(a_obs.shape[0]):
+        o0, o1, o2, d0, d1, d2, ua, ub, phase, line, s_a, s_b, wa, wb = _pixel(
+            i, O, D, a_obs, b_obs, sa, sb, mask, combine)
         Y = _line_in_projector(o0, o1, o2, d0, d1, d2, R9, t0, t1, t2)
         s = _start(ua, Y, intr, fa, ca, swap)
         step = 0.0
@@ -249,14 +234,14 @@ def _fast_block(lo, hi, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b,
         ok[i] = good
         res[i] = r if solved else np.nan
         sig[i] = sg if good else np.nan
-        xyz[i, 0] = o0 + s * d0 if good else np.nan
-        xyz[i, 1] = o1 + s * d1 if good else np.nan
-        xyz[i, 2] = o2 + s * d2 if good else np.nan
+        xyz[0][i] = o0 + s * d0 if good else np.nan
+        xyz[1][i] = o1 + s * d1 if good else np.nan
+        xyz[2][i] = o2 + s * d2 if good else np.nan
     return n_slow
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _slow_pixels(O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b, combine, swap,
+def _slow_pixels(O, D, a_obs, b_obs, sa, sb, mask, has_b, combine, swap,
                  intr, R, t, W, H, max_res, max_sz, xyz, sig, res, flags,
                  ok):  # pragma: no cover - numba
     # the pixels the fast pass left: iterate as the reference does
@@ -266,8 +251,8 @@ def _slow_pixels(O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b, combin
     for i in range(a_obs.shape[0]):
         if flags[i] != FLAG_NOT_CONVERGED:
             continue
-        o0, o1, o2, d0, d1, d2, ua, ub, phase, line, s_a, s_b, wa, wb = _pixel_in(
-            i, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, combine)
+        o0, o1, o2, d0, d1, d2, ua, ub, phase, line, s_a, s_b, wa, wb = _pixel(
+            i, O, D, a_obs, b_obs, sa, sb, mask, combine)
         if not (phase & line):
             continue
         Y = _line_in_projector(o0, o1, o2, d0, d1, d2, R9, t0, t1, t2)
@@ -297,18 +282,23 @@ def _slow_pixels(O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b, combin
 
 
 @njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _solve_pinhole(O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b, combine, swap,
-                   intr, R, t, W, H, max_res, max_sz, xyz, sig, res, flags,
-                   ok):  # pragma: no cover - numba
+def _solve_pinhole(O, D, a_obs, b_obs, sa, sb, mask, has_b, combine, swap, intr, R, t, W, H,
+                   max_res, max_sz, xyz, sig, res, flags, ok):  # pragma: no cover - numba
+    # chunks of contiguous slices, each looped from 0 (so that the compiler knows the
+    # indices are not negative and vectorises the loads and stores)
     n = a_obs.shape[0]
     n_chunks = (n + _CHUNK - 1) // _CHUNK
     n_slow = 0
     for k in prange(n_chunks):
         lo = k * _CHUNK
         hi = min(lo + _CHUNK, n)
-        n_slow += _fast_block(lo, hi, O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b,
-                              combine, swap, intr, R, t, W, H, max_res, max_sz, xyz, sig, res,
-                              flags, ok)
+        n_slow += _fast_block((O[0][lo:hi], O[1][lo:hi], O[2][lo:hi]),
+                              (D[0][lo:hi], D[1][lo:hi], D[2][lo:hi]), a_obs[lo:hi],
+                              b_obs[lo:hi], sa[lo:hi], sb[lo:hi], mask[lo:hi], has_b, combine,
+                              swap, intr, R, t, W, H, max_res, max_sz,
+                              (xyz[0][lo:hi], xyz[1][lo:hi], xyz[2][lo:hi]), sig[lo:hi],
+                              res[lo:hi], flags[lo:hi], ok[lo:hi])
     if n_slow:
-        _slow_pixels(O, D, o_step, d_step, a_obs, b_obs, sa, sb, mask, has_b, combine, swap,
-                     intr, R, t, W, H, max_res, max_sz, xyz, sig, res, flags, ok)
+        _slow_pixels((O[0], O[1], O[2]), (D[0], D[1], D[2]), a_obs, b_obs, sa, sb, mask,
+                     has_b, combine, swap, intr, R, t, W, H, max_res, max_sz,
+                     (xyz[0], xyz[1], xyz[2]), sig, res, flags, ok)

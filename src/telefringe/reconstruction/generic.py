@@ -204,6 +204,7 @@ class GenericTriangulator:
     bad: np.ndarray
     s_ref: np.ndarray
     step: float
+    planes: tuple | None = None  #: the lines as (3, n) planes for a compiled solver
 
     @classmethod
     def for_shape(cls, rig, shape) -> GenericTriangulator:
@@ -237,16 +238,27 @@ class GenericTriangulator:
         o, d, bad = safe_backproject(rig.camera, u.reshape(-1), v.reshape(-1))
         P0, scale = working_point(rig.camera, rig.projector)
         s_ref = np.sum((P0 - o) * d, axis=-1)
-        s_ref = np.broadcast_to(s_ref, (int(np.prod(shape)),)).copy()
+        n = int(np.prod(shape))
+        s_ref = np.broadcast_to(s_ref, (n,)).copy()
+        planes = None
+        if _gk.solver_for(rig.projector) is not None:
+            # contiguous planes for the compiled solver (a shared point or direction is
+            # repeated: the loop then reads every pixel's alike, and vectorises); the
+            # per-pixel arrays become views of them
+            O = np.ascontiguousarray(np.broadcast_to(o, (n, 3)).T)
+            D = np.ascontiguousarray(np.broadcast_to(d, (n, 3)).T)
+            o = o if o.ndim == 1 else O.T
+            d = d if d.ndim == 1 else D.T
+            planes = (_readonly(O), _readonly(D))
         for a in (o, d, bad, s_ref):
             _readonly(a)
-        return cls(rig, tuple(shape), o, d, bad, s_ref, 0.05 * scale)
+        return cls(rig, tuple(shape), o, d, bad, s_ref, 0.05 * scale, planes)
 
     @property
     def directions(self) -> np.ndarray:
         """The cloud's directions: (3,) shared, or shape + (3,)."""
         d = self.direction
-        return d if d.ndim == 1 else d.reshape(self.shape + (3,))
+        return d if d.ndim == 1 else _readonly(d.reshape(self.shape + (3,)))
 
     def line_points(self, s) -> np.ndarray:
         """World points (..., 3) mm at line parameter ``s`` (shape ``shape``)."""
@@ -263,17 +275,19 @@ class GenericTriangulator:
         proj = self.rig.projector
         size = proj.image_size if check_bounds else None
         W, H = (float(size[0]), float(size[1])) if size is not None else (np.inf, np.inf)
-        out = _Out(n)
+        solver = _gk.solver_for(proj) if compiled and self.planes is not None else None
+        out = _Out(n, empty=solver is not None)
         if obs.has_v:
             out.res = np.full(n, np.nan)
-        solver = _gk.solver_for(proj) if compiled else None
         if solver is not None:
             self._check_sample(obs, use_v_p)
-            solver(proj, self.origin, self.direction, obs.a, obs.b, obs.sa, obs.sb,
+            xyz = np.empty((3, n))
+            solver(proj, self.planes[0], self.planes[1], obs.a, obs.b, obs.sa, obs.sb,
                    obs.mask, obs.has_v and use_v_p, obs.swap, W, H,
                    np.inf if max_residual is None else max_residual,
-                   np.inf if max_sigma_z is None else max_sigma_z, out.xyz, out.sig,
+                   np.inf if max_sigma_z is None else max_sigma_z, xyz, out.sig,
                    out.res, out.flags, out.ok)
+            out.xyz = np.moveaxis(xyz.reshape((3,) + self.shape), 0, -1)
             return self._cloud(out)
         o_full = np.broadcast_to(self.origin, (n, 3))
         d_full = np.broadcast_to(self.direction, (n, 3))
@@ -287,12 +301,15 @@ class GenericTriangulator:
     def _check_sample(self, obs: _Obs, use_v_p: bool):
         """The sensitivity check of the reference path on up to 512 valid pixels, at the
         rig's working depth (the compiled solvers do not make it)."""
-        valid = obs.mask & np.isfinite(obs.a) & ~self.bad
-        idx = np.flatnonzero(valid)
-        if idx.size == 0:
-            return
-        idx = idx[np.linspace(0, idx.size - 1, min(idx.size, 512)).astype(np.intp)]
         n = int(np.prod(self.shape))
+        idx = np.arange(0, n, max(1, n // 4096))
+        idx = idx[obs.mask[idx] & np.isfinite(obs.a[idx]) & ~self.bad[idx]]
+        if idx.size == 0:
+            valid = obs.mask & np.isfinite(obs.a) & ~self.bad
+            idx = np.flatnonzero(valid)
+            if idx.size == 0:
+                return
+        idx = idx[np.linspace(0, idx.size - 1, min(idx.size, 512)).astype(np.intp)]
         o = np.broadcast_to(self.origin, (n, 3))[idx]
         d = np.broadcast_to(self.direction, (n, 3))[idx]
         X = o + self.s_ref[idx, None] * d
@@ -303,20 +320,29 @@ class GenericTriangulator:
         _check_sensitivity(ratio[np.isfinite(ratio)], obs, use_v_p)
 
     def _cloud(self, out: _Out) -> PointCloud:
-        xyz = out.xyz.reshape(self.shape + (3,))
+        xyz = out.xyz if out.xyz.ndim == 3 else out.xyz.reshape(self.shape + (3,))
         return PointCloud._adopt(xyz, out.ok.reshape(self.shape),
                                  out.sig.reshape(self.shape),
                                  None if out.res is None else out.res.reshape(self.shape),
-                                 out.flags.reshape(self.shape), _readonly(
-                                     np.array(self.directions)))
+                                 out.flags.reshape(self.shape),
+                                 # the triangulator's read-only lines, shared by its clouds
+                                 self.directions)
 
 
 class _Out:
-    def __init__(self, n):
-        self.xyz = np.full((n, 3), np.nan)
-        self.sig = np.full(n, np.nan)
-        self.flags = np.full(n, FLAG_NO_PHASE, dtype=np.uint8)
-        self.ok = np.zeros(n, dtype=bool)
+    """The flat outputs; ``empty``: the compiled solvers write every element."""
+
+    def __init__(self, n, empty=False):
+        if empty:
+            self.xyz = None
+            self.sig = np.empty(n)
+            self.flags = np.empty(n, dtype=np.uint8)
+            self.ok = np.empty(n, dtype=bool)
+        else:
+            self.xyz = np.full((n, 3), np.nan)
+            self.sig = np.full(n, np.nan)
+            self.flags = np.full(n, FLAG_NO_PHASE, dtype=np.uint8)
+            self.ok = np.zeros(n, dtype=bool)
         self.res = None
 
 
@@ -541,8 +567,8 @@ def _round_trip(proj, X, u, v):
 # Cache and public functions
 # --------------------------------------------------------------------------------------
 #: Bytes the per-process cache of :class:`GenericTriangulator` may hold (per-pixel lines of
-#: a pinhole camera: 42 MB for 1280 x 1024).
-GENERIC_CACHE_BYTES = 128 * 2**20
+#: a camera with a pinhole projector: 74 MB for 1280 x 1024).
+GENERIC_CACHE_BYTES = 160 * 2**20
 
 
 class _Cache:
@@ -555,7 +581,9 @@ class _Cache:
 
     @staticmethod
     def _size(t):
-        return int(t.origin.nbytes + t.direction.nbytes + t.s_ref.nbytes + t.bad.nbytes)
+        planes = 0 if t.planes is None else sum(p.nbytes for p in t.planes)
+        own = sum(a.nbytes for a in (t.origin, t.direction) if a.base is None)
+        return int(own + planes + t.s_ref.nbytes + t.bad.nbytes)
 
     def get(self, rig, shape, build):
         key = (id(rig), tuple(shape))
