@@ -13,7 +13,9 @@ model (render-free) with 0.05 px of noise. Prints, for u fringes only and for u 
   ``--runs`` runs by the wall clock, and the CPU time per run (process time: all
   threads; load-independent, but counts the threads' spinning);
 - the one-time set-up per rig and image size (the camera's lines);
-- the same for the telecentric camera + pinhole projector mix;
+- the same for the telecentric camera + pinhole projector and pinhole camera +
+  telecentric projector mixes (two telecentric devices take the fast path of
+  ``benchmarks/reconstruct.py``);
 - with ``--reference``: the NumPy reference path once (slow).
 
 The machine may be shared: the load average is printed; wall-clock figures move with it.
@@ -43,7 +45,7 @@ class Coords:
 
 
 def _rigs(shape):
-    from anyrig_rigs import pinhole, telecentric_camera
+    from anyrig_rigs import pinhole, telecentric_camera, telecentric_projector
 
     from telefringe.devices.rig import Rig
 
@@ -54,7 +56,8 @@ def _rigs(shape):
                   dist=(0.08, -0.2, -5e-4, 2e-4, 0.0), pp=(3.0, 40.0), roll=-0.03)
     tcam = telecentric_camera(shape)
     return {"pinhole camera + pinhole projector": Rig(cam, prj),
-            "telecentric camera + pinhole projector": Rig(tcam, prj)}
+            "telecentric camera + pinhole projector": Rig(tcam, prj),
+            "pinhole camera + telecentric projector": Rig(cam, telecentric_projector())}
 
 
 def _coords(rig, shape, seed=0):

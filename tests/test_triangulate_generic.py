@@ -113,9 +113,16 @@ def test_flags(mix):
     assert unc.any() and np.all(cl0.sigma_z[unc] > lim) and np.all(cl1.sigma_z[cl1.mask] <= lim)
 
 
+# The compiled solvers take sigma from the slopes at their last iterate, which the
+# convergence test (|u''/u'| step^2 <= 1e-12 (1 + |s|) mm) places within |u''/u'| |step|
+# <= sqrt(1e-12 (1 + |s|) |u''/u'|) ~ 1.4e-6 (s ~ 200 mm, |u''/u'| ~ 0.01 / mm) of the
+# solution's, relatively: far below sigma's own uncertainty.
+TOL_SIGMA = 2e-6
+
+
 def test_telecentric_fast_path_equals_generic():
     """Same rig, same noisy coordinates: the fast path and the generic path solve the same
-    equations to 1e-12 mm; they agree within 1e-9 mm (points), 1e-9 relative (sigma) and
+    equations to 1e-12 mm; they agree within 1e-9 mm (points), TOL_SIGMA (sigma) and
     1e-9 px (residual), and flag the same pixels."""
     rig = rig_of("tt", (96, 128))
     X, up, vp = surface_truth(rig, (96, 128), seed=2)
@@ -134,10 +141,16 @@ def test_telecentric_fast_path_equals_generic():
             assert a.count > 0.9 * up.size
             assert np.nanmax(np.abs(a.xyz - b.xyz)) < 1e-9
             if c.sigma_u_p is not None or c.u_p is None:
-                assert np.nanmax(np.abs(a.sigma_line / b.sigma_line - 1)) < 1e-9
+                assert np.nanmax(np.abs(a.sigma_line / b.sigma_line - 1)) < TOL_SIGMA
             if a.residual is not None:
                 assert np.nanmax(np.abs(a.residual - b.residual)) < 1e-9
             assert np.allclose(a.directions, b.directions, atol=1e-15)
+            # and the NumPy reference
+            r = generic.triangulate(rig, c, use_v_p=use_v_p, compiled=False)
+            assert np.array_equal(a.flags, r.flags)
+            assert np.nanmax(np.abs(a.xyz - r.xyz)) < 1e-9
+            if c.sigma_u_p is not None or c.u_p is None:
+                assert np.nanmax(np.abs(a.sigma_line / r.sigma_line - 1)) < 1e-9
 
 
 def test_pipeline_dispatch():
@@ -200,11 +213,12 @@ def test_pinhole_kernel_projection_equals_model():
     assert np.max(np.abs(np.hypot(u - ur, v - vr)[fin])) < 1e-9
 
 
-@pytest.mark.parametrize("mix", ["tp", "pp"])
+@pytest.mark.parametrize("mix", MIXES)
 def test_compiled_solver_equals_reference(mix):
-    """The pinhole projector's compiled solver against the NumPy reference: the same flags,
-    points within 1e-9 mm, sigma within 1e-9 relative, residuals within 1e-9 px (both stop
-    at 1e-12 mm), with noise, a fringe-order slip, masked and off-projector pixels."""
+    """The compiled solver (pinhole and telecentric projectors) against the NumPy
+    reference: the same flags, points within 1e-9 mm, sigma within TOL_SIGMA, residuals
+    within 1e-9 px (both stop at 1e-12 mm), with noise, a fringe-order slip, masked and
+    off-projector pixels."""
     rig = rig_of(mix)
     X, up, vp = surface_truth(rig, seed=9)
     rng = np.random.default_rng(5)
@@ -225,7 +239,7 @@ def test_compiled_solver_equals_reference(mix):
             assert np.array_equal(a.flags, b.flags)
             assert np.nanmax(np.abs(a.xyz - b.xyz)) < 1e-9
             if c.sigma_u_p is not None or c.u_p is None:
-                assert np.nanmax(np.abs(a.sigma_line / b.sigma_line - 1)) < 1e-9
+                assert np.nanmax(np.abs(a.sigma_line / b.sigma_line - 1)) < TOL_SIGMA
             if a.residual is not None:
                 assert np.array_equal(np.isnan(a.residual), np.isnan(b.residual))
                 assert np.nanmax(np.abs(a.residual - b.residual)) < 1e-9

@@ -19,6 +19,7 @@ import numpy as np
 from numba import njit, prange
 
 from telefringe.devices import _pinhole_kernels as _pk
+from telefringe.devices import _telecentric_kernels as _tk
 from telefringe.reconstruction.cloud import (
     FLAG_INCONSISTENT,
     FLAG_NO_PHASE,
@@ -35,16 +36,50 @@ _MAX_ITER = 50
 
 def solver_for(projector):
     """The compiled solve for this projector's model, or None (then the NumPy path)."""
-    if getattr(projector, "model", None) == "pinhole" and hasattr(projector, "intrinsics"):
-        return _run_pinhole
+    if getattr(projector, "model", None) in _ARGS and hasattr(projector, "intrinsics"):
+        return _run
     return None
 
 
-def _run_pinhole(proj, O, D, a_obs, b_obs, sa, sb, mask, combine, swap, W, H, max_res,
-                 max_sz, xyz, sig, res, flags, ok):
-    """Solve every pixel with a pinhole projector: the lines' points and directions as
-    planes O, D (3, n), the observations (n,), into xyz (3, n) and the flat outputs."""
-    intr, R, t = _pk.kernel_args(proj)
+def _pinhole_args(proj):
+    (fx, fy, cx, cy, k1, k2, p1, p2, k3), R, t = _pk.kernel_args(proj)
+    return (fx, fy, cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0), R, t
+
+
+def _telecentric_args(proj):
+    # a telecentric projector in the same form: its undistorted sensor mm are the "frame"
+    # coordinates (m R[0:2] X + m t, with a constant third coordinate 1), its pixel pitch
+    # the inverse focal length, its distortion the radial k1 and the thin prism s1, s2
+    (m, du, dv, u0, v0, k1, s1, s2), R, t = _tk.kernel_args(proj)
+    Rp = np.zeros((3, 3))
+    Rp[:2] = m * R[:2]
+    tp = np.array([m * t[0], m * t[1], 1.0])
+    return (1.0 / du, 1.0 / dv, u0, v0, k1, 0.0, 0.0, 0.0, 0.0, s1, s2), Rp, tp
+
+
+_ARGS = {"pinhole": _pinhole_args, "telecentric": _telecentric_args}
+
+
+@njit(inline="always")
+def _distort(x, y, k1, k2, p1, p2, k3, s1, s2):  # pragma: no cover - numba
+    # OpenCV's model plus the thin prism (s1, s2 r^2): the pinhole model with s = 0, the
+    # telecentric sensor model with k2 = p = k3 = 0 (adding zeros changes no bit)
+    xd, yd = _pk.distort_point(x, y, k1, k2, p1, p2, k3)
+    r2 = x * x + y * y
+    return xd + s1 * r2, yd + s2 * r2
+
+
+@njit(inline="always")
+def _distortion_jacobian(x, y, k1, k2, p1, p2, k3, s1, s2):  # pragma: no cover - numba
+    a, b, c, d = _pk.distortion_jacobian(x, y, k1, k2, p1, p2, k3)
+    return a + 2.0 * s1 * x, b + 2.0 * s1 * y, c + 2.0 * s2 * x, d + 2.0 * s2 * y
+
+
+def _run(proj, O, D, a_obs, b_obs, sa, sb, mask, combine, swap, W, H, max_res,
+         max_sz, xyz, sig, res, flags, ok):
+    """Solve every pixel: the lines' points and directions as planes O, D (3, n), the
+    observations (n,), into xyz (3, n) and the flat outputs."""
+    intr, R, t = _ARGS[proj.model](proj)
     has_b = b_obs is not None
     n = a_obs.shape[0]
     if b_obs is None:
@@ -60,20 +95,29 @@ def _run_pinhole(proj, O, D, a_obs, b_obs, sa, sb, mask, combine, swap, W, H, ma
 def _eval(s, Y00, Y01, Y02, Yd0, Yd1, Yd2, intr):  # pragma: no cover - numba
     """Projector pixel (u, v), its derivatives along the line (du/ds, dv/ds), the
     distortion's Jacobian and the depth in the projector at line parameter s."""
-    fx, fy, cx, cy, k1, k2, p1, p2, k3 = intr
+    fx, fy, cx, cy, k1, k2, p1, p2, k3, s1, s2 = intr
     Y0 = Y00 + s * Yd0
     Y1 = Y01 + s * Yd1
     Y2 = Y02 + s * Yd2
     iz = 1.0 / Y2
     x = Y0 * iz
     y = Y1 * iz
-    xd, yd = _pk.distort_point(x, y, k1, k2, p1, p2, k3)
-    a, b, c, d = _pk.distortion_jacobian(x, y, k1, k2, p1, p2, k3)
+    xd, yd = _distort(x, y, k1, k2, p1, p2, k3, s1, s2)
+    a, b, c, d = _distortion_jacobian(x, y, k1, k2, p1, p2, k3, s1, s2)
     dx = (Yd0 - x * Yd2) * iz
     dy = (Yd1 - y * Yd2) * iz
     gu = fx * (a * dx + b * dy)
     gv = fy * (c * dx + d * dy)
-    return fx * xd + cx, fy * yd + cy, gu, gv, a, b, c, d, Y2
+    # for the error estimate of the fast pass, |u''| / |u'| along the line is bounded by
+    # the perspective's |2 Yd_z / Y_z| plus the distortion's |dX^T Hess dX| / |slope|:
+    # kdd bounds the numerator (twice the bound of the second derivatives for |x|, |y|
+    # <= r, times (|dx| + |dy|)^2), divided by the slope in _step
+    r = np.sqrt(x * x + y * y)
+    kd = 2.0 * (6.0 * abs(k1) * r + 20.0 * abs(k2) * r * r * r + 42.0 * abs(k3) * r ** 5
+                + 6.0 * (abs(p1) + abs(p2)) + 2.0 * (abs(s1) + abs(s2)))
+    dd = abs(dx) + abs(dy)
+    persp = abs(2.0 * Yd2 * iz)
+    return fx * xd + cx, fy * yd + cy, gu, gv, a, b, c, d, Y2, persp, kd * dd * dd
 
 
 # The fast pass: from the undistorted start, _N_FAST Newton (Gauss-Newton) steps with no
@@ -96,7 +140,7 @@ def _line_in_projector(o0, o1, o2, d0, d1, d2, R9, t0, t1, t2):  # pragma: no co
 @njit(inline="always")
 def _step(s, ua, ub, wa, wb, Y, intr, combine, swap):  # pragma: no cover - numba
     Y00, Y01, Y02, Yd0, Yd1, Yd2 = Y
-    u, v, gu, gv, a, b, c, d, z = _eval(s, Y00, Y01, Y02, Yd0, Yd1, Yd2, intr)
+    u, v, gu, gv, a, b, c, d, z, persp, kdd = _eval(s, Y00, Y01, Y02, Yd0, Yd1, Yd2, intr)
     pa = v if swap else u
     pb = u if swap else v
     ga = gv if swap else gu
@@ -105,7 +149,9 @@ def _step(s, ua, ub, wa, wb, Y, intr, combine, swap):  # pragma: no cover - numb
         step = (wa * ga * (pa - ua) + wb * gb * (pb - ub)) / (wa * ga * ga + wb * gb * gb)
     else:
         step = (pa - ua) / ga
-    return step, u, v, pa, pb, ga, gb, a, b, c, d, z
+    fa = intr[1] if swap else intr[0]
+    curv = persp + kdd * fa / abs(ga)
+    return step, u, v, pa, pb, ga, gb, a, b, c, d, z, curv
 
 
 @njit(inline="always")
@@ -138,7 +184,7 @@ def _start(ua, Y, intr, fa, ca, swap):  # pragma: no cover - numba
     iz = 1.0 / (Y02 + s0 * Yd2)
     x = (Y00 + s0 * Yd0) * iz
     y = (Y01 + s0 * Yd1) * iz
-    xd, yd = _pk.distort_point(x, y, intr[4], intr[5], intr[6], intr[7], intr[8])
+    xd, yd = _distort(x, y, intr[4], intr[5], intr[6], intr[7], intr[8], intr[9], intr[10])
     off = yd - y if swap else xd - x
     s1 = _plane_root(xt - off, Y, swap)
     return s1 if abs(s1) < np.inf else s0
@@ -201,10 +247,10 @@ def _fast_block(O, D, a_obs, b_obs, sa, sb, mask, has_b, combine,
         Y = _line_in_projector(o0, o1, o2, d0, d1, d2, R9, t0, t1, t2)
         s = _start(ua, Y, intr, fa, ca, swap)
         step = 0.0
-        u = v = pa = pb = ga = gb = a = b = c = d = z = 0.0
+        u = v = pa = pb = ga = gb = a = b = c = d = z = curv = 0.0
         for _ in range(_N_FAST):
-            step, u, v, pa, pb, ga, gb, a, b, c, d, z = _step(s, ua, ub, wa, wb, Y, intr,
-                                                               combine, swap)
+            step, u, v, pa, pb, ga, gb, a, b, c, d, z, curv = _step(s, ua, ub, wa, wb, Y,
+                                                                     intr, combine, swap)
             s = s - step
         # the last evaluation was at s + step: its pixel moved to s to first order, its
         # slopes are those of the solution to a relative 1e-12 once converged
@@ -212,7 +258,7 @@ def _fast_block(O, D, a_obs, b_obs, sa, sb, mask, has_b, combine,
         v = v - step * _gv_of(ga, gb, swap)
         pa = pa - step * ga
         pb = pb - step * gb
-        est = abs(2.0 * Y[5] / z) * step * step
+        est = curv * step * step  # twice |u'' / (2 u')| step^2
         conv = (est <= _TOL_S * (1.0 + abs(s))) & (Y[2] + s * Y[5] > 0.0)
         conv = conv & _pk.is_unfolded(a, b, c, d)
         if combine:
@@ -274,8 +320,8 @@ def _slow_pixels(O, D, a_obs, b_obs, sa, sb, mask, has_b, combine, swap,
             if abs(step) <= _TOL_S * (1.0 + abs(s)):
                 conv = True
                 break
-        _, u, v, pa, pb, ga, gb, a, b, c, d, z = _step(s, ua, ub, wa, wb, Y, intr, combine,
-                                                        swap)
+        _, u, v, pa, pb, ga, gb, a, b, c, d, z, _ = _step(s, ua, ub, wa, wb, Y, intr,
+                                                           combine, swap)
         _finish(i, s, conv & np.isfinite(s), o0, o1, o2, d0, d1, d2, ua, ub, s_a, s_b, u, v,
                 pa, pb, ga, gb, a, b, c, d, z, has_b, combine, W, H, max_res, max_sz, xyz,
                 sig, res, flags, ok)
