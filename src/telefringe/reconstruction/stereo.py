@@ -63,7 +63,7 @@ _CHUNK = 4096
 _TOL_F = 1e-9  # projector px
 _MAX_ITER = 60
 _GAP_TOL = 1e-6  # mm, the two rays' distance at the match
-_SAMPLE_PX = 6.0  # spacing of the bracketing samples in the second camera, px
+_SAMPLE_PX = 16.0  # spacing of the bracketing samples in the second camera, px
 
 
 @dataclass(frozen=True, eq=False)
