@@ -243,3 +243,33 @@ def test_compiled_solver_equals_reference(mix):
             if a.residual is not None:
                 assert np.array_equal(np.isnan(a.residual), np.isnan(b.residual))
                 assert np.nanmax(np.abs(a.residual - b.residual)) < 1e-9
+
+
+@pytest.mark.parametrize("mix", ["tp", "pp"])
+def test_compiled_camera_lines_equal_protocol(mix):
+    """The camera's compiled back-projection (used to build the triangulator) gives the
+    protocol's lines: directions within 1e-12, points of telecentric lines within 1e-9 mm;
+    a pixel beyond the fold of a pinhole camera's distortion is bad, not wrong."""
+    from telefringe.reconstruction._generic_kernels import camera_lines
+
+    cam = rig_of(mix).camera
+    rng = np.random.default_rng(2)
+    u = rng.uniform(-5, SHAPE[1] + 5, 300)
+    v = rng.uniform(-5, SHAPE[0] + 5, 300)
+    o, d, bad = camera_lines(cam, u, v)
+    o_ref, d_ref, bad_ref = generic.safe_backproject(cam, u, v)
+    assert not bad.any() and not bad_ref.any()
+    assert np.max(np.abs(np.broadcast_to(d, (300, 3)) - d_ref)) < 1e-12
+    assert np.max(np.abs(np.broadcast_to(o, (300, 3)) - o_ref)) < 1e-9
+    if mix[0] == "p":
+        # a strong barrel distortion (k1 = -0.5) folds at a normalised radius of 0.54
+        # (1730 px here): both refuse a pixel beyond it, and keep one inside
+        from anyrig_rigs import pinhole
+
+        barrel = pinhole((0.0, 0.0, 200.0), f=3200.0, size=(64, 48),
+                         dist=(-0.5, 0.0, 0.0, 0.0, 0.0))
+        uu = np.array([31.5 + 2500.0, 31.5 + 1000.0])
+        vv = np.array([23.5, 23.5])
+        _, _, bad = camera_lines(barrel, uu, vv)
+        _, _, bad_ref = generic.safe_backproject(barrel, uu, vv)
+        assert np.array_equal(bad, bad_ref) and bad[0] and not bad[1]

@@ -21,7 +21,9 @@ import numba
 import numpy as np
 
 __all__ = ["kernel_args", "distort_point", "distortion_jacobian", "is_unfolded",
-           "project_point", "project_many"]
+           "project_point", "project_many", "undistort_point", "backproject_many"]
+
+_EPS = 2.220446049250313e-16
 
 
 def kernel_args(device):
@@ -86,3 +88,55 @@ def project_many(P, intr, R, t):  # pragma: no cover - numba
     for i in range(n):
         up[i], vp[i] = project_point(P[i, 0], P[i, 1], P[i, 2], intr, R9, t[0], t[1], t[2])
     return up, vp
+
+
+@numba.njit(inline="always")
+def undistort_point(xd, yd, k1, k2, p1, p2, k3):  # pragma: no cover - numba
+    """Newton inversion of the distortion at one point, as
+    :func:`telefringe.geometry.distortion.undistort_normalized` (start at the distorted
+    point, tolerance max(1e-14, 64 eps (|xd| + |yd|)) on the forward residual, 50 steps).
+
+    Returns (x, y, ok): ok is False where it does not converge or converges beyond the
+    fold of the distortion.
+    """
+    if k1 == 0.0 and k2 == 0.0 and p1 == 0.0 and p2 == 0.0 and k3 == 0.0:
+        return xd, yd, True
+    thresh = max(1e-14, 64.0 * _EPS * (abs(xd) + abs(yd)))
+    x = xd
+    y = yd
+    for _ in range(50):
+        fx, fy = distort_point(x, y, k1, k2, p1, p2, k3)
+        fx -= xd
+        fy -= yd
+        a, b, c, d = distortion_jacobian(x, y, k1, k2, p1, p2, k3)
+        det = a * d - b * c
+        x = x - (d * fx - b * fy) / det
+        y = y - (-c * fx + a * fy) / det
+        if abs(fx) + abs(fy) <= thresh:
+            break
+    fx, fy = distort_point(x, y, k1, k2, p1, p2, k3)
+    a, b, c, d = distortion_jacobian(x, y, k1, k2, p1, p2, k3)
+    ok = (abs(fx - xd) + abs(fy - yd) <= 10.0 * thresh) and is_unfolded(a, b, c, d)
+    return x, y, ok
+
+
+@numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def backproject_many(u, v, intr, R, d_out):  # pragma: no cover - numba
+    """Unit world directions d_out (3, n) of the rays through the pixels u, v (n,)
+    (PinholeDevice.backproject; the rays all start at the centre ``-R^T t``); NaN where
+    the inversion fails. Returns the number of finite pixels whose inversion failed."""
+    fx, fy, cx, cy, k1, k2, p1, p2, k3 = intr
+    n_bad = 0
+    for i in numba.prange(u.shape[0]):
+        x, y, ok = undistort_point((u[i] - cx) / fx, (v[i] - cy) / fy, k1, k2, p1, p2, k3)
+        # d = R^T (x, y, 1), normalised
+        d0 = R[0, 0] * x + R[1, 0] * y + R[2, 0]
+        d1 = R[0, 1] * x + R[1, 1] * y + R[2, 1]
+        d2 = R[0, 2] * x + R[1, 2] * y + R[2, 2]
+        inv = 1.0 / np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        good = ok and np.isfinite(u[i]) and np.isfinite(v[i])
+        n_bad += np.isfinite(u[i]) and np.isfinite(v[i]) and not ok
+        d_out[0, i] = d0 * inv if good else np.nan
+        d_out[1, i] = d1 * inv if good else np.nan
+        d_out[2, i] = d2 * inv if good else np.nan
+    return n_bad

@@ -28,7 +28,7 @@ from telefringe.reconstruction.cloud import (
     FLAG_UNCERTAIN,
 )
 
-__all__ = ["solver_for"]
+__all__ = ["solver_for", "camera_lines"]
 
 _TOL_S = 1e-12
 _MAX_ITER = 50
@@ -38,6 +38,27 @@ def solver_for(projector):
     """The compiled solve for this projector's model, or None (then the NumPy path)."""
     if getattr(projector, "model", None) in _ARGS and hasattr(projector, "intrinsics"):
         return _run
+    return None
+
+
+def camera_lines(camera, u, v):
+    """The camera's lines through pixels u, v (n,) by its compiled model, as
+    ``safe_backproject`` gives them (origin, direction: (3,) or (n, 3); bad (n,)), or
+    None where the model has no compiled back-projection (then use the protocol)."""
+    if getattr(camera, "model", None) == "pinhole" and hasattr(camera, "intrinsics"):
+        intr, R, t = _pk.kernel_args(camera)
+        D = np.empty((3, u.size))
+        _pk.backproject_many(u, v, intr, R, D)
+        bad = ~np.isfinite(D[0]) & np.isfinite(u) & np.isfinite(v)
+        return -R.T @ t, D.T, bad
+    if getattr(camera, "model", None) == "telecentric" and hasattr(camera, "intrinsics"):
+        intr, R, t = _tk.kernel_args(camera)
+        a = np.empty(u.size)
+        b = np.empty(u.size)
+        if _tk.backproject_lines(u, v, intr, t, a, b):
+            return None  # pixels beyond the fold: the protocol's path finds them
+        return (a[:, None] * R[0] + b[:, None] * R[1], R[2].copy(),
+                np.zeros(u.size, dtype=bool))
     return None
 
 

@@ -235,7 +235,12 @@ class GenericTriangulator:
         if rig.projector is None:
             raise TriangulationError("the rig has no projector: a camera + projector "
                                      "triangulation needs a calibrated projector")
-        o, d, bad = safe_backproject(rig.camera, u.reshape(-1), v.reshape(-1))
+        uf = np.ascontiguousarray(u, dtype=np.float64).reshape(-1)
+        vf = np.ascontiguousarray(v, dtype=np.float64).reshape(-1)
+        # the camera model's compiled back-projection where it has one (tested equal to
+        # the protocol's), else the protocol
+        lines = _gk.camera_lines(rig.camera, uf, vf)
+        o, d, bad = lines if lines is not None else safe_backproject(rig.camera, uf, vf)
         P0, scale = working_point(rig.camera, rig.projector)
         s_ref = np.sum((P0 - o) * d, axis=-1)
         n = int(np.prod(shape))
