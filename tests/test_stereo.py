@@ -186,6 +186,9 @@ def test_cli_two_cameras(tmp_path):
                      str(tmp_path / "right"), "--rig", str(tmp_path / rj), "-o",
                      str(tmp_path / "no")])
         assert code == 2 and not (tmp_path / "no").exists()
+    code = main(["reconstruct", str(tmp_path / "left"), "--rig", str(tmp_path / "rig.json"),
+                 "-o", str(tmp_path / "no"), "--search-mm", "5"])
+    assert code == 2 and not (tmp_path / "no").exists()
     one = Rig(rig.camera, rig.projector)
     (tmp_path / "one.json").write_text(json.dumps(bare_rig_json(one)))
     code = main(["reconstruct", str(tmp_path / "left"), "--second", str(tmp_path / "right"),
