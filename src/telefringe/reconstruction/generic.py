@@ -34,9 +34,12 @@ sigma_u^2 + (dv_P/ds)^2 / sigma_v^2)`` with both axes), the covariance is ``sigm
 d^T`` and ``PointCloud.sigma_line = sigma_s`` (``d`` is unit).
 
 The cloud's ``directions`` are the camera's: (3,) for a telecentric camera, one per
-pixel (rows, cols, 3) for a pinhole one. Model-specific compiled solvers
-(:mod:`telefringe.reconstruction._generic_kernels`) reproduce this path fast; this module
-is the reference they are tested against.
+pixel (rows, cols, 3) for a pinhole one. A compiled solver for pinhole and telecentric
+projectors (:mod:`telefringe.reconstruction._generic_kernels`, chosen by the projector's
+``model``; ``compiled=False`` bypasses it) reproduces this path fast: this module is the
+reference it is tested against (same flags, points within 1e-9 mm). Building a
+triangulator (the camera's lines, once per rig and image size, cached) likewise uses the
+camera model's compiled back-projection where there is one, tested against the protocol's.
 """
 
 from __future__ import annotations
@@ -416,8 +419,8 @@ def _check_sensitivity(ratio, obs: _Obs, use_v_p: bool):
 
 
 def _project(proj, X, swap):
-    """The projector's (primary, other) pixels of X (m, 3) and their slopes along ``d``
-    need the Jacobian: see :func:`_project_slope`."""
+    """The projector's (primary, other) pixels of X (m, 3) mm (the slopes too:
+    :func:`_project_slope`)."""
     u, v = proj.project(X)
     return (v, u) if swap else (u, v)
 
