@@ -238,10 +238,24 @@ class WindowProjector:
                              f"= {want}), got shape {img.shape}")
         if img.dtype != np.uint8:
             raise ValueError(f"the window projector shows 8-bit images (uint8), got {img.dtype}")
+        return self._draw(img[::-1, :, None])       # GL's rows run bottom-up
+
+    def show_rgb(self, image: np.ndarray) -> Shown:
+        """Show a colour frame ((height, width, 3) uint8, R, G, B), e.g. three 8-bit
+        patterns packed for a DLP controller in video pattern mode."""
+        if self._win is None:
+            raise DeviceError("the projector window is closed")
+        img = np.asarray(image)
+        want = (self.info.height, self.info.width, 3)
+        if img.shape != want or img.dtype != np.uint8:
+            raise ValueError(f"show_rgb takes {want} uint8, got {img.shape} {img.dtype}")
+        return self._draw(img[::-1])
+
+    def _draw(self, rgb_bottom_up: np.ndarray) -> Shown:
         gl = self._gl
         self._win.switch_to()
         self._win.dispatch_events()
-        self._rgb[...] = img[::-1, :, None]         # GL's rows run bottom-up
+        self._rgb[...] = rgb_bottom_up
         data = self._image.ImageData(self.info.width, self.info.height, "RGB",
                                       self._rgb.tobytes(), pitch=self.info.width * 3)
         self._tex.blit_into(data, 0, 0, 0)
