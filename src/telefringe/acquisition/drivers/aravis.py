@@ -39,28 +39,13 @@ from telefringe.acquisition.base import (
     Trigger,
 )
 from telefringe.acquisition.drivers import _arvlib as _a
+from telefringe.acquisition.drivers._ids import id_gap
 
 __all__ = ["AravisCamera", "open_camera", "list_cameras", "id_gap"]
 
 _ACQUISITION_CONTINUOUS = 1
 _AUTO_OFF = 0
 _CODE_TO_NAME = {code: name for name, (code, _) in _a.PIXEL_FORMATS.items()}
-
-
-def id_gap(last: int, new: int, *, wrap16: bool) -> int:
-    """Frames from id ``last`` to id ``new`` (1 when ``new`` directly follows).
-
-    With ``wrap16`` (GigE Vision 1.x block ids) ids run 1..65535 and 65535 is followed by
-    1 (0 is never used); otherwise ids are 64-bit counters.
-
-    >>> id_gap(65535, 1, wrap16=True), id_gap(65534, 2, wrap16=True), id_gap(7, 8, wrap16=True)
-    (1, 3, 1)
-    >>> id_gap(5, 5, wrap16=True)
-    0
-    """
-    if wrap16 and 1 <= last <= 65535 and 1 <= new <= 65535:
-        return (new - last) % 65535
-    return new - last
 
 
 def list_cameras() -> list[DeviceListing]:
