@@ -57,6 +57,7 @@ def _flags_show_no_type() -> None:
 def _register_all():
     from telefringe.cli import (
         calibrate,
+        capture,
         decode,
         demo,
         measure,
@@ -68,6 +69,7 @@ def _register_all():
 
     for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo):
         mod.register(app)
+    capture.register(app)
     # one-line summaries in `telefringe --help`: the first paragraph of each docstring,
     # its hard line breaks joined
     for cmd in app.registered_commands:
