@@ -145,3 +145,85 @@ class FakeGigECamera:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+# ------------------------------------------------------------------ a virtual rig server
+def _rig_fill(region: tuple[int, int, int, int], preset: str, scene: str, seed: int):
+    """A fill function: the virtual rig's camera image of what the X display shows in
+    ``region`` (x, y, width, height): a virtual camera looking at a virtual plate lit by
+    whatever a projector window shows there."""
+    import mss
+
+    from telefringe.acquisition.drivers.sim import SimConfig, SimRig
+
+    rig = SimRig(SimConfig(preset=preset, scene=scene, seed=seed))
+    x, y, w, h = region
+    if (h, w) != rig.panel_shape:
+        raise ValueError(f"the watched region is {w} x {h}; the {preset} rig's projector is "
+                         f"{rig.panel_shape[1]} x {rig.panel_shape[0]}")
+    grabber = mss.MSS()
+    cam = rig.vrig.camera.intrinsics
+    rig.render(0, 1)                # trace the scene now, not during the first frame
+
+    def fill(width, height, pixel_format, exposure_s, gain):
+        if (height, width) != (cam.height, cam.width):
+            raise ValueError(f"configure the camera's region to {cam.width} x {cam.height} "
+                             f"(the rig's camera), not {width} x {height}")
+        shot = np.asarray(grabber.grab({"left": x, "top": y, "width": w, "height": h}))
+        rig.emit(0, np.ascontiguousarray(shot[..., 1]))      # BGRA: the green channel
+        return rig.render(0, int(exposure_s * 1e9), pixel_format=pixel_format)
+
+    return fill
+
+
+def main(argv=None) -> int:
+    """``python -m telefringe.acquisition.drivers.aravis_fake``: serve a fake GigE Vision
+    camera on loopback until killed or ``--lifetime`` seconds pass.
+
+    With ``--watch X,Y,W,H`` (or ``--monitor NAME``) its frames are the virtual rig's
+    camera view of what that part of the X display shows: point a ``window`` projector
+    at it and ``telefringe capture scan OUT --camera aravis:127.0.0.1 --projector
+    window:NAME`` runs the whole capture through an X server and GigE Vision.
+    """
+    import argparse
+    import sys
+    import time
+
+    ap = argparse.ArgumentParser(prog="python -m telefringe.acquisition.drivers.aravis_fake",
+                                 description=main.__doc__.split("\n\n")[0])
+    ap.add_argument("--address", default="127.0.0.1", help="loopback address to listen on")
+    ap.add_argument("--serial", default="TF001")
+    ap.add_argument("--loss", type=float, default=0.0, help="fraction of packets dropped")
+    ap.add_argument("--watch", help="X,Y,WIDTH,HEIGHT of the display the camera sees")
+    ap.add_argument("--monitor", help="or the RandR monitor it sees")
+    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--scene", default="plate")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--lifetime", type=float, default=600.0,
+                    help="stop after this many seconds (default 600)")
+    a = ap.parse_args(argv)
+    fill = None
+    if a.watch or a.monitor:
+        if a.watch:
+            region = tuple(int(v) for v in a.watch.split(","))
+        else:
+            from telefringe.acquisition.drivers.window import list_monitors
+
+            m = {m.name: m for m in list_monitors()}[a.monitor]
+            region = (m.x, m.y, m.width, m.height)
+        fill = _rig_fill(region, a.preset, a.scene, a.seed)
+    with FakeGigECamera(fill, address=a.address, serial=a.serial, loss_ratio=a.loss) as cam:
+        print(f"ready {cam.device_id} on {a.address}", flush=True)
+        end = time.monotonic() + a.lifetime
+        try:
+            while time.monotonic() < end:
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            pass
+        if cam.errors:
+            print(f"{len(cam.errors)} frames failed: {cam.errors[-1]}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
