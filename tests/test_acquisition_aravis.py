@@ -282,6 +282,33 @@ def test_one_percent_packet_loss_retries_then_succeeds_or_fails_clearly(rig8):
     assert all(np.array_equal(im, rig8.image(i, seed=1)) for i, im in enumerate(images))
 
 
+def test_hardware_trigger_and_free_run(rig8):
+    """HARDWARE: the line is set, fire() sends nothing, and with no pulse on the line
+    (the fake has no trigger input) grab says TIMEOUT, never an old image. FREE_RUN: every
+    frame once, oldest first, ids consecutive."""
+    shown = _Shown()
+    shown.index = 3
+    with _fake(rig8, shown), aravis.open_camera("127.0.0.1") as cam:
+        k = rig8.vrig.camera.intrinsics
+        s = cam.configure(exposure_s=0.004, roi=(0, 0, k.width, k.height),
+                          trigger=Trigger.HARDWARE)
+        assert (s.trigger, s.trigger_line) == (Trigger.HARDWARE, "Line0")
+        cam.start()
+        cam.fire()
+        f = cam.grab(0.3)
+        assert f.status is FrameStatus.TIMEOUT and f.image is None
+        cam.stop()
+        cam.configure(exposure_s=0.004, roi=(0, 0, k.width, k.height),
+                      trigger=Trigger.FREE_RUN)
+        cam.start()
+        frames = [cam.grab(1.0) for _ in range(6)]
+        cam.stop()
+    assert all(f.ok and f.message == "" for f in frames)
+    assert all(aravis.id_gap(a.frame_id, b.frame_id, wrap16=True) == 1
+               for a, b in zip(frames, frames[1:], strict=False))
+    assert all(np.array_equal(f.image, rig8.image(3, seed=1)) for f in frames)
+
+
 def test_registry_opens_the_camera_by_address_and_by_serial(rig8):
     shown = _Shown()
     with _fake(rig8, shown, serial="TF777"):

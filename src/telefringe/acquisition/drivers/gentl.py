@@ -68,11 +68,9 @@ def _harvester(path: str) -> Harvester:
 
 
 def list_cameras(path: str = "") -> list[DeviceListing]:
-    """The devices the producers find (``path``: one .cti, else GENICAM_GENTL64_PATH)."""
-    try:
-        h = _harvester(path)
-    except DeviceError:
-        return []
+    """The devices the producers find (``path``: one .cti, else GENICAM_GENTL64_PATH);
+    DeviceError saying what is missing when there is no producer."""
+    h = _harvester(path)
     try:
         return [DeviceListing("gentl", f"{path}#{i}" if path else f"#{i}",
                               model=str(d.model), serial=str(d.serial_number),
