@@ -383,21 +383,33 @@ def test_capture_cli_through_an_x_server_and_gige_vision(tmp_path):
     xvfb, env = _xvfb_with_projector(p.width, p.height)
     server = None
     try:
-        server = subprocess.Popen(
-            [sys.executable, "-m", "telefringe.acquisition.drivers.aravis_fake",
-             "--monitor", "PROJECTOR", "--lifetime", "240"], env=env,
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        line = server.stdout.readline()
-        assert line.startswith("ready"), server.stderr.read()
         common = ["--periods", "1,8", "--axes", "u,v", "--exposure", "0.0333",
                   "--latency", "0.01"]
         tf = [sys.executable, "-m", "telefringe.cli"]
-        real = subprocess.run(tf + ["capture", "scan", str(tmp_path / "real"), "--camera",
-                                    "aravis:127.0.0.1", "--projector", "window:PROJECTOR",
-                                    "--roi", f"{vrig.camera.intrinsics.width}x"
-                                    f"{vrig.camera.intrinsics.height}+0+0"] + common,
-                              env=env, capture_output=True, text=True, timeout=240)
+        roi = f"{vrig.camera.intrinsics.width}x{vrig.camera.intrinsics.height}+0+0"
+        runs = {}
+        for name, loss in (("real", "0"), ("lossy", "0.01")):
+            server = subprocess.Popen(
+                [sys.executable, "-m", "telefringe.acquisition.drivers.aravis_fake",
+                 "--monitor", "PROJECTOR", "--loss", loss, "--lifetime", "240"], env=env,
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            line = server.stdout.readline()
+            assert line.startswith("ready"), server.stderr.read()
+            runs[name] = subprocess.run(
+                tf + ["capture", "scan", str(tmp_path / name), "--camera", "aravis:127.0.0.1",
+                      "--projector", "window:PROJECTOR", "--roi", roi, "--retries", "10"]
+                + common, env=env, capture_output=True, text=True, timeout=240)
+            server.terminate()
+            server.communicate(timeout=30)
+            server = None
+        real = runs["real"]
         assert real.returncode == 0, real.stdout + real.stderr
+        # 1 % of the packets lost: re-shoots then success, or one clear error and nothing
+        # written (10 re-shoots per frame: that happens with p ~ 0.4 %)
+        lossy = runs["lossy"]
+        if lossy.returncode != 0:
+            assert lossy.returncode == 1 and not (tmp_path / "lossy").exists()
+            assert lossy.stderr.strip().count("\n") == 0 and "attempts failed" in lossy.stderr
         direct = subprocess.run(tf + ["capture", "scan", str(tmp_path / "direct"),
                                       "--camera", "sim", "--projector",
                                       "sim:preset=fast,latency=0.01"] + common,
@@ -437,3 +449,9 @@ def test_capture_cli_through_an_x_server_and_gige_vision(tmp_path):
           f"sim pair {r_direct:.5f} rad; ratio {r_real / r_direct:.4f}; retries "
           f"{block['retries']}")
     assert r_real <= 1.1 * r_direct
+    if lossy.returncode == 0:
+        b = json.loads((tmp_path / "lossy" / "scan.json").read_text())["capture"]
+        r_lossy = rms(tmp_path / "lossy")
+        print(f"  with 1 % packet loss: {b['retries']} re-shoots, phase RMS {r_lossy:.5f} rad,"
+              f" ratio {r_lossy / r_direct:.4f}")
+        assert b["retries"] >= 1 and r_lossy <= 1.1 * r_direct

@@ -29,7 +29,8 @@ INSTALL_HINT = ("the aravis driver needs the Aravis 0.8 library (libaravis-0.8.s
                 "0.8 from its sources; set TELEFRINGE_LIBARAVIS to its path if elsewhere")
 
 #: ArvBufferStatus values (arvbuffer.h, 0.8)
-BUFFER_STATUS = {-1: "unknown", 0: "success", 1: "cleared", 2: "timeout",
+BUFFER_STATUS = {-1: "unknown", 0: "success", 1: "cleared",
+                 2: "packets still missing when the frame timed out",
                  3: "missing packets", 4: "wrong packet id", 5: "size mismatch",
                  6: "filling", 7: "aborted", 8: "payload not supported"}
 
