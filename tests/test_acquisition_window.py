@@ -125,3 +125,24 @@ def test_missing_pyglet_is_one_line_saying_what_to_install():
     assert out.returncode == 0, out.stderr
     line = out.stdout.strip()
     assert "\n" not in line and "pip install 'telefringe[window]'" in line
+
+
+def test_refresh_rate_from_xrandr_and_options(xserver):
+    text = ("Screen 0: minimum 320 x 200, current 2832 x 1140, maximum 16384 x 16384\n"
+            "eDP-1 connected primary 1920x1080+0+0 (normal left inverted) 344mm x 194mm\n"
+            "   1920x1080     60.02*+  59.97    48.00\n"
+            "   1280x720      60.00\n"
+            "HDMI-1 connected 912x1140+1920+0 (normal left inverted) 0mm x 0mm\n"
+            "   912x1140      59.94*+\n"
+            "   800x600       60.32    56.25\n"
+            "DP-1 disconnected (normal left inverted right x axis y axis)\n")
+    assert window.refresh_from_xrandr(text, (1920, 0, 912, 1140)) == 59.94
+    assert window.refresh_from_xrandr(text, (0, 0, 1920, 1080)) == 60.02
+    assert window.refresh_from_xrandr(text, (100, 0, 1920, 1080)) == 0.0   # spans two
+    # Xvfb's mode has no clock: unknown, not invented; refresh= states it
+    with open_projector("window:PROJECTOR") as p:
+        assert p.info.refresh_hz == 0.0
+    with open_projector("window:PROJECTOR,refresh=60,vsync=0") as p:
+        assert p.info.refresh_hz == 60.0 and p.info.address == "PROJECTOR,refresh=60,vsync=0"
+    with pytest.raises(Exception, match="unknown option 'fps=60'"):
+        open_projector("window:PROJECTOR,fps=60")

@@ -5,7 +5,12 @@
 - a monitor index, as ``telefringe capture devices`` lists them (``window:1``);
 - a monitor name (``window:HDMI-1``, or one declared with ``xrandr --setmonitor``);
 - an explicit geometry ``WIDTHxHEIGHT+X+Y`` in desktop pixels (``window:912x1140+1280+0``);
-- empty: the last monitor listed that is not the primary one.
+- empty: the last monitor listed that is not the primary one;
+
+followed by options ``,refresh=HZ`` (the monitor's refresh rate, when the system cannot
+tell it: telefringe rounds exposures to whole refresh periods) and ``,vsync=0`` (do not
+wait for the vertical blank). Without ``refresh=``, the rate of the video mode of the
+output that shows the monitor is read from ``xrandr`` (0: unknown).
 
 On X11 the monitors are RandR 1.5 monitors (``xrandr --listmonitors``: real outputs and
 software monitors alike), read through libXrandr; elsewhere pyglet's screens. Needs pyglet
@@ -146,6 +151,79 @@ def list_monitors() -> list[Monitor]:
             for i, s in enumerate(display.get_screens())]
 
 
+def parse_address(address: str) -> tuple[str, dict]:
+    """Split ``"SPEC[,refresh=HZ][,vsync=0|1]"`` into the monitor SPEC and options.
+
+    >>> parse_address("PROJECTOR,refresh=60")
+    ('PROJECTOR', {'refresh': 60.0})
+    """
+    spec, *rest = [p.strip() for p in address.split(",")]
+    opts: dict = {}
+    for item in rest:
+        key, eq, value = item.partition("=")
+        try:
+            if key == "refresh" and eq:
+                opts["refresh"] = float(value)
+                if not 1.0 <= opts["refresh"] <= 1000.0:
+                    raise ValueError
+            elif key == "vsync" and eq and value in ("0", "1"):
+                opts["vsync"] = value == "1"
+            else:
+                raise KeyError
+        except KeyError:
+            raise DeviceError(f"window:{address}: unknown option {item!r}; expected "
+                              f"refresh=HZ or vsync=0|1") from None
+        except ValueError:
+            raise DeviceError(f"window:{address}: refresh must be 1..1000 Hz, got "
+                              f"{value!r}") from None
+    return spec, opts
+
+
+_XRANDR_OUTPUT = re.compile(r"^(\S+) connected (?:primary )?(\d+)x(\d+)\+(\d+)\+(\d+)")
+_XRANDR_RATE = re.compile(r"(\d+(?:\.\d+)?)\*")
+
+
+def refresh_from_xrandr(text: str, box: tuple[int, int, int, int]) -> float:
+    r"""The refresh rate (Hz) of the current mode of the output (in ``xrandr --query``
+    output ``text``) whose area contains ``box`` = (x, y, width, height); 0 if none.
+
+    >>> txt = "HDMI-1 connected 912x1140+1920+0 (normal) 0mm x 0mm\n   912x1140  60.00*+"
+    >>> refresh_from_xrandr(txt, (1920, 0, 912, 1140))
+    60.0
+    """
+    rate, current = 0.0, None
+    for line in text.splitlines():
+        m = _XRANDR_OUTPUT.match(line)
+        if m:
+            w, h, x, y = (int(g) for g in m.groups()[1:])
+            bx, by, bw, bh = box
+            current = x <= bx and y <= by and bx + bw <= x + w and by + bh <= y + h
+            continue
+        if line[:1].isspace() and current:
+            r = _XRANDR_RATE.search(line)
+            if r and float(r.group(1)) > 0:
+                rate = float(r.group(1))
+                current = None
+        elif not line[:1].isspace():
+            current = None
+    return rate
+
+
+def _refresh_of(box: tuple[int, int, int, int]) -> float:
+    """The refresh rate of the output showing ``box``, read from xrandr (0: unknown)."""
+    import shutil
+    import subprocess
+
+    if not sys.platform.startswith("linux") or shutil.which("xrandr") is None:
+        return 0.0
+    try:
+        out = subprocess.run(["xrandr", "--query"], capture_output=True, text=True,
+                             timeout=5, check=True).stdout
+    except (OSError, subprocess.SubprocessError):
+        return 0.0
+    return refresh_from_xrandr(out, box)
+
+
 def _choose(spec: str) -> tuple[tuple[int, int, int, int], str]:
     """((x, y, width, height), description) of a projector SPEC (see the module)."""
     geo = parse_geometry(spec) if spec else None
@@ -179,7 +257,9 @@ def list_projectors() -> list[DeviceListing]:
 
 def open_projector(address: str) -> WindowProjector:
     """Open a window projector on the monitor ``address`` names (see the module)."""
-    return WindowProjector(address)
+    spec, opts = parse_address(address)
+    return WindowProjector(spec, refresh_hz=opts.get("refresh"),
+                           vsync=opts.get("vsync", True), address=address)
 
 
 class WindowProjector:
@@ -189,14 +269,20 @@ class WindowProjector:
     ----------
     spec : str
         Monitor index or name, ``WIDTHxHEIGHT+X+Y``, or "" (see the module docstring).
-    refresh_hz : float
-        The monitor's refresh rate if known (0: unknown), reported in ``info``.
+    refresh_hz : float or None
+        The monitor's refresh rate, reported in ``info``; None: read it from xrandr
+        (0 when unknown).
     vsync : bool
         Swap buffers at the vertical blank (recommended; the driver may ignore it).
+    address : str
+        What to report as ``info.address`` (default ``spec``).
     """
 
-    def __init__(self, spec: str = "", *, refresh_hz: float = 0.0, vsync: bool = True):
+    def __init__(self, spec: str = "", *, refresh_hz: float | None = None,
+                 vsync: bool = True, address: str | None = None):
         (x, y, w, h), where = _choose(spec)
+        if refresh_hz is None:
+            refresh_hz = _refresh_of((x, y, w, h))
         pyglet.options["shadow_window"] = False     # no hidden window of pyglet's own
         try:
             gl = importlib.import_module("pyglet.gl")
@@ -214,13 +300,20 @@ class WindowProjector:
         self._win.set_location(x, y)
         self._win.set_mouse_visible(False)
         self._win.set_visible(True)
+        self._win.dispatch_events()
+        if tuple(self._win.get_location()) != (x, y):
+            got = self._win.get_location()
+            self._win.close()
+            raise DeviceError(f"the window manager put the projector window at {got}, not "
+                              f"at ({x}, {y}): keep panels and docks off the projector's "
+                              f"monitor, or give its geometry as WxH+X+Y")
         self._tex = self._image.Texture.create(w, h, min_filter=gl.GL_NEAREST,
                                                 mag_filter=gl.GL_NEAREST)
         self._rgb = np.empty((h, w, 3), dtype=np.uint8)
         self.clock = SYSTEM_CLOCK
         self.info = ProjectorInfo(driver="window", model=where, serial="", width=w, height=h,
                                   refresh_hz=float(refresh_hz), bit_depth=8, sequencer=False,
-                                  address=spec)
+                                  address=spec if address is None else address)
         self._refresh = 0
         self.show(np.zeros((h, w), dtype=np.uint8))
 
