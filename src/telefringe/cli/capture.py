@@ -336,6 +336,7 @@ def calibration_cmd(
         tilts = []
         with atomic_dir(out, force=force) as tmp:
             k = 0
+            sim_k = 0               # the sim "user" moves the plate at every Enter
             while k < poses:
                 info(f"pose {k + 1}/{poses}: place the plate"
                      + (" (reference: flat, in the middle of the field)" if k == 0 else "")
@@ -345,7 +346,11 @@ def calibration_cmd(
                     _fail(f"stopped at pose {k + 1} of {poses}: nothing was written", 130
                           if line else 1)
                 if sim_poses is not None:
-                    cam.move_to_pose(k)
+                    if sim_k >= sim_poses:
+                        _fail(f"the sim plate has no pose left after {sim_poses}: "
+                              f"nothing was written")
+                    cam.move_to_pose(sim_k)
+                    sim_k += 1
                 n = sum(g.count for g in groups) + 2
                 with progress_bar(f"pose {k + 1}: capturing {n} frames", n) as advance:
                     res = capture_scan(cam, proj, groups=groups, white_black=True,
