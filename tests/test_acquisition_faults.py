@@ -124,7 +124,7 @@ def test_id_wrap_is_no_fault():
 
 
 def test_persistent_faults_end_in_one_clear_error():
-    with pytest.raises(CaptureFailed, match=r"pattern 0: 4 attempts failed \(timeout"):
+    with pytest.raises(CaptureFailed, match=r"pattern 0: 4 attempts failed \(4 x timeout"):
         _capture(cam="drop=1")
     # light 45 ms later than the latency the capture was told: the re-shoots wait one
     # more refresh period per round, which is not enough in one round

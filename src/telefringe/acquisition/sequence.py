@@ -213,10 +213,17 @@ def check_groups(images: Sequence[np.ndarray], layout: Sequence[tuple], *, max_v
     starts = np.cumsum([0, *counts[:-1]])
     per_group = [list(images[s:s + c]) for s, c in zip(starts, counts, strict=True)]
     sat = np.array([verify.saturated_fraction(im, max_value=max_value) for im in images])
-    med = float(np.median(sat)) if sat.size else 0.0
     flagged: set[int] = set()
-    flash = np.flatnonzero(sat > max(policy.flash_factor * med, med + 0.005))
-    flagged.update(int(i) for i in flash)
+    if saturation_limit:
+        # stray light saturating one fringe frame (the shortest exposure only: longer HDR
+        # passes saturate by design; white and black frames are not judged this way)
+        is_flat = np.zeros(len(images), dtype=bool)
+        for (kind, _g), s0, c in zip(layout, starts, counts, strict=True):
+            is_flat[s0:s0 + c] = kind == "flat"
+        med = float(np.median(sat[~is_flat])) if (~is_flat).any() else 0.0
+        flash = np.flatnonzero((sat > max(policy.flash_factor * med, med + 0.005))
+                               & ~is_flat)
+        flagged.update(int(i) for i in flash)
     reports = []
     dark, bright = _dark_bright(per_group, layout)
     if white_black is not None and all(i is not None for i in white_black):
@@ -422,8 +429,12 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                             t_fire, attempt + 1)
             failures.append(why)
             events.append(f"pattern {i}: {why}")
+        seen: dict[str, int] = {}
+        for why in failures:
+            seen[why] = seen.get(why, 0) + 1
+        said = "; ".join(f"{n} x {w}" if n > 1 else w for w, n in seen.items())
         raise CaptureFailed(f"pattern {i}: {policy.frame_retries + 1} attempts failed "
-                            f"({'; '.join(failures)})")
+                            f"({said})")
 
     shots = []
     for i in range(len(images)):

@@ -580,7 +580,7 @@ class SimCamera:
             return self._frame(e)
         clock.wait_until(deadline)
         return Frame(image=None, frame_id=-1, timestamp_ns=None, status=FrameStatus.TIMEOUT,
-                     message=f"no frame within {timeout_s:g} s")
+                     message=f"no frame within {timeout_s:.3g} s")
 
     def _frame(self, e: _Exposure) -> Frame:
         s = self.settings
