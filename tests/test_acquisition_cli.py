@@ -153,9 +153,14 @@ def chain(tmp_path_factory):
 def test_captured_calibration_is_as_good_as_rendered(chain):
     rc = chain["captured"][0]["calibration"]
     rr = chain["rendered"][0]["calibration"]
-    for key in ("rms_camera_px", "rms_projector_px"):
-        if key in rc:
-            assert rc[key] < 2 * rr[key], (key, rc[key], rr[key])
+    # measured: camera 0.0070 vs 0.0069 px, projector 0.0044 vs 0.0044 px (seed 3)
+    for dev in ("camera", "projector"):
+        c, r = rc["rms_px"][dev], rr["rms_px"][dev]
+        assert c < 2 * r, (dev, c, r)
+    # the magnification against the truth (0.1597): 2.7e-5 off for both; the bound of
+    # test_calibrate_cli for rendered sets
+    for name in ("captured", "rendered"):
+        assert abs(chain[name][0]["camera"]["m"] / 0.1597 - 1) < 6.5e-5, name
     used_c = [p["used"] for p in rc["poses"]]
     assert sum(used_c) == 5
 

@@ -209,6 +209,11 @@ def check_groups(images: Sequence[np.ndarray], layout: Sequence[tuple], *, max_v
     reports : one :class:`GroupReport` per group.
     flagged : set of frame indices (into ``images``) to re-shoot.
     """
+    full = images
+    # the checks are statistics over the field: a regular sample of about 40 000 pixels
+    # gives them to far better than their tolerances, at a fraction of the cost
+    stride = max(1, int(np.sqrt(np.asarray(images[0]).size / 40_000)))
+    images = [np.asarray(im)[::stride, ::stride] for im in images]
     counts = [g.count if kind != "flat" else 1 for kind, g in layout]
     starts = np.cumsum([0, *counts[:-1]])
     per_group = [list(images[s:s + c]) for s, c in zip(starts, counts, strict=True)]
@@ -337,8 +342,9 @@ def check_groups(images: Sequence[np.ndarray], layout: Sequence[tuple], *, max_v
                                      old.gain_range, old.modulated, old.saturated,
                                      tuple(range(n)), f"background off by {100 * dev:.0f} % "
                                      f"of the modulation from the verified groups' ({old.message})")
-    for _a, b in verify.duplicate_frames(images):
-        flagged.add(int(b))
+    for a, b in verify.duplicate_frames(images):
+        if np.array_equal(full[a], full[b]):
+            flagged.add(int(b))
     return reports, flagged
 
 
@@ -417,8 +423,9 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                            f"{state['consumed']} trigger(s) in between: not the frame "
                            f"just triggered")
                 elif (state["last_image"] is not None
+                      and np.array_equal(f.image[::7, ::7], state["last_image"][::7, ::7])
                       and np.array_equal(f.image, state["last_image"])
-                      and float(np.std(f.image)) >= 1.0):
+                      and float(np.std(f.image[::7, ::7])) >= 1.0):
                     why = "the previous image again (stuck buffer)"
             if f.frame_id > 0 and f.status is not FrameStatus.TIMEOUT:
                 # ids consumed so far are counted from this frame on
