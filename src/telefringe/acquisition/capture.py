@@ -165,7 +165,7 @@ def capture_scan(camera: Camera, projector: Projector, *, groups: Sequence,
         if mode == "streamed":
             res = capture_streamed(camera, projector, images, settings=settings, wait_s=wait_s,
                                    layout=layout, policy=policy, saturation_limit=limit,
-                                   white_black=wb, progress=progress)
+                                   white_black=wb, progress=progress, period_s=period)
         else:
             res = capture_sequenced(camera, projector, images, settings=settings,
                                     exposure_s=settings.exposure_s, layout=layout,

@@ -57,17 +57,26 @@ class Policy:
     spacing_tol : float, allowed deviation of time-stamp spacing, fraction of a period.
     max_saturated : float, largest saturated fraction of an image accepted at the
         shortest exposure (longer HDR exposures saturate by design).
+    background_tol : float, largest RMS difference, relative to the modulation, between
+        the background of a group the phase-step check cannot judge and that of a verified
+        group (or 4 times its noise, if larger). Clean groups of the virtual rig show
+        0.010-0.015 (noise); a frame of the previous pattern moves it by about 0.35 for
+        N = 4, a quarter of one (4 ms of a 16 ms exposure) by 0.05-0.06.
+    min_modulated : float, smallest fraction of pixels that must show fringes (in the
+        best phase group of a pass); below it the camera does not see the projection.
     flash_factor : float, a frame whose saturated fraction exceeds its group's median by
         this factor (and 0.5 % of the image) is re-shot.
     """
 
     timeout_s: float = 1.0
     frame_retries: int = 3
-    group_rounds: int = 2
+    group_rounds: int = 3
     total_retries: int = 50
     spacing_tol: float = 0.25
     max_saturated: float = 0.05
     flash_factor: float = 3.0
+    min_modulated: float = 0.01
+    background_tol: float = 0.03
 
 
 @dataclass(frozen=True)
@@ -200,29 +209,53 @@ def check_groups(images: Sequence[np.ndarray], layout: Sequence[tuple], *, max_v
     reports : one :class:`GroupReport` per group.
     flagged : set of frame indices (into ``images``) to re-shoot.
     """
+    full = images
+    # the checks are statistics over the field: a regular sample of about 40 000 pixels
+    # gives them to far better than their tolerances, at a fraction of the cost
+    stride = max(1, int(np.sqrt(np.asarray(images[0]).size / 40_000)))
+    images = [np.asarray(im)[::stride, ::stride] for im in images]
     counts = [g.count if kind != "flat" else 1 for kind, g in layout]
     starts = np.cumsum([0, *counts[:-1]])
     per_group = [list(images[s:s + c]) for s, c in zip(starts, counts, strict=True)]
     sat = np.array([verify.saturated_fraction(im, max_value=max_value) for im in images])
-    med = float(np.median(sat)) if sat.size else 0.0
     flagged: set[int] = set()
-    flash = np.flatnonzero(sat > max(policy.flash_factor * med, med + 0.005))
-    flagged.update(int(i) for i in flash)
+    if saturation_limit:
+        # stray light saturating one fringe frame (the shortest exposure only: longer HDR
+        # passes saturate by design; white and black frames are not judged this way)
+        is_flat = np.zeros(len(images), dtype=bool)
+        for (kind, _g), s0, c in zip(layout, starts, counts, strict=True):
+            is_flat[s0:s0 + c] = kind == "flat"
+        med = float(np.median(sat[~is_flat])) if (~is_flat).any() else 0.0
+        flash = np.flatnonzero((sat > max(policy.flash_factor * med, med + 0.005))
+                               & ~is_flat)
+        flagged.update(int(i) for i in flash)
     reports = []
     dark, bright = _dark_bright(per_group, layout)
     if white_black is not None and all(i is not None for i in white_black):
         bright = np.asarray(images[white_black[0]], dtype=float)
         dark = np.asarray(images[white_black[1]], dtype=float)
+    ref = None              # (background, modulation) of a verified phase group
+    pending = []            # phase groups the step check could not judge
     for (kind, _g), s0, frames in zip(layout, starts, per_group, strict=True):
         gsat = float(max((sat[s0 + j] for j in range(len(frames))), default=0.0))
         if kind == "phase":
             r = verify.phase_step_check(np.stack(frames), max_value=max_value)
             bad = {int(s0 + j) for j in np.flatnonzero(r.flagged)}
+            # a frame far darker or brighter than its group (the projector showed
+            # nothing yet, or stray light): caught even where the step check cannot run
+            if not r.possible:
+                pending.append((int(s0), len(frames), r))
+            elif not bad and ref is None:
+                st = np.stack(frames).astype(float)
+                ref = (st.mean(axis=0), _modulation_b(st),
+                       float(np.sqrt(np.mean(r.residual ** 2))))
             # a frame repeating its predecessor (late by a whole pattern)
             for j in range(1, len(frames)):
                 if np.array_equal(frames[j], frames[j - 1]):
                     bad.add(int(s0 + j))
-            flagged |= bad
+            # which frame of a group is off cannot always be told (N = 4: frame k and
+            # k + 2 look alike): the whole group is re-shot
+            flagged |= set(range(int(s0), int(s0) + len(frames))) if bad else set()
             reports.append(GroupReport(
                 "phase", r.possible,
                 float(np.nanmax(np.abs(r.step_error))) if r.possible else float("nan"),
@@ -240,9 +273,86 @@ def check_groups(images: Sequence[np.ndarray], layout: Sequence[tuple], *, max_v
                                        message=r.message))
         else:
             reports.append(GroupReport(kind, False, saturated=gsat))
-    for _a, b in verify.duplicate_frames(images):
-        flagged.add(int(b))
+    # groups the step check could not judge (a coarse group seeing part of a period):
+    # their background (the mean of an N-step group, independent of the phase) must be
+    # the verified group's; a dark, late or mixed frame moves it by a part of B / N
+    flats = None
+    if white_black is not None and all(i is not None for i in white_black):
+        flats = (np.asarray(images[white_black[0]], dtype=float),
+                 np.asarray(images[white_black[1]], dtype=float))
+    if flats is not None and float(np.mean(flats[0] - flats[1])) < 0.02 * max_value:
+        flagged |= {int(white_black[0]), int(white_black[1])}
+        reports[-2] = GroupReport("flat", False, saturated=reports[-2].saturated, flagged=(0,),
+                                  message="the white frame is not brighter than the black one")
+        flats = None
+    if ref is not None and flats is not None:
+        # white above and black below the fringes' range
+        a_ref, b_ref, _noise = ref
+        ok = b_ref > 0.05 * max_value
+        if np.count_nonzero(ok) >= 50:
+            wq = float(np.median((flats[0][ok] - a_ref[ok]) / b_ref[ok]))
+            bq = float(np.median((a_ref[ok] - flats[1][ok]) / b_ref[ok]))
+            for idx, q, name in ((white_black[0], wq, "white"), (white_black[1], bq, "black")):
+                if q < 0.5:
+                    flagged.add(int(idx))
+                    i = len(reports) - (2 if name == "white" else 1)
+                    reports[i] = GroupReport("flat", False, saturated=reports[i].saturated,
+                                             flagged=(0,), message=f"the {name} frame is not "
+                                             f"{name}er than the fringes ({q:+.2f} B)")
+    for s0, n, _r in pending:
+        st = np.stack(images[s0:s0 + n]).astype(float)
+        if ref is None:
+            if flats is None:
+                continue
+            # no verified group: the background of an N-step group is black + kappa
+            # (white - black) with one kappa per group (a linear camera)
+            w_, k_ = flats
+            b_own = _modulation_b(st)
+            ok = ((b_own > 0.05 * max_value) & np.all(st < max_value, axis=0)
+                  & (w_ - k_ > 0.1 * max_value))
+            if np.count_nonzero(ok) < 50:
+                continue
+            y = st.mean(axis=0)[ok] - k_[ok]
+            x = w_[ok] - k_[ok]
+            kappa = float(np.sum(x * y) / np.sum(x * x))
+            dev = float(np.sqrt(np.mean((y - kappa * x) ** 2))
+                        / np.sqrt(np.mean(b_own[ok] ** 2)))
+            if dev > policy.background_tol:
+                flagged |= set(range(s0, s0 + n))
+                i = int(np.searchsorted(starts, s0))
+                old = reports[i]
+                reports[i] = GroupReport(old.kind, old.possible, old.max_step_error_rad,
+                                         old.gain_range, old.modulated, old.saturated,
+                                         tuple(range(n)), f"background not proportional to "
+                                         f"white - black ({100 * dev:.0f} % of the modulation)")
+            continue
+        a_ref, b_ref, noise = ref
+        ok = (b_ref > 0.05 * max_value) & np.all(st < max_value, axis=0)
+        if np.count_nonzero(ok) < 50:
+            continue
+        b_rms = float(np.sqrt(np.mean(b_ref[ok] ** 2)))
+        dev = float(np.sqrt(np.mean((st.mean(axis=0)[ok] - a_ref[ok]) ** 2))) / b_rms
+        # both backgrounds carry noise: sqrt(1/n + 1/N_ref) of a frame's
+        tol = max(policy.background_tol, 4.0 * noise * np.sqrt(2.0 / n) / b_rms)
+        if dev > tol:
+            flagged |= set(range(s0, s0 + n))
+            i = int(np.searchsorted(starts, s0))
+            old = reports[i]
+            reports[i] = GroupReport(old.kind, old.possible, old.max_step_error_rad,
+                                     old.gain_range, old.modulated, old.saturated,
+                                     tuple(range(n)), f"background off by {100 * dev:.0f} % "
+                                     f"of the modulation from the verified groups' ({old.message})")
+    for a, b in verify.duplicate_frames(images):
+        if np.array_equal(full[a], full[b]):
+            flagged.add(int(b))
     return reports, flagged
+
+
+def _modulation_b(st: np.ndarray) -> np.ndarray:
+    n = st.shape[0]
+    d = 2 * np.pi * np.arange(n) / n
+    return 2.0 / n * np.hypot(np.tensordot(np.cos(d), st, axes=1),
+                              np.tensordot(np.sin(d), st, axes=1))
 
 
 # --------------------------------------------------------------------------- streamed
@@ -255,7 +365,7 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                      policy: Policy = Policy(), saturation_limit: bool = True,
                      white_black: tuple | None = None,
                      progress: Callable[[int], None] | None = None,
-                     last_id: int = -1) -> PassResult:
+                     last_id: int = -1, period_s: float = 0.0) -> PassResult:
     """Capture ``images`` one by one with software triggers (the camera is started,
     configured as ``settings``); verify and re-shoot (see the module docstring).
 
@@ -266,6 +376,9 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
     layout, white_black : see :func:`check_groups`.
     progress : called with 1 per accepted frame.
     last_id : the id of the frame before this pass (-1: none).
+    period_s : float, the projector's refresh period; each round of group re-shoots waits
+        one more (light that comes late -- a latency that varies -- is the usual cause
+        of flagged phase steps).
 
     Raises
     ------
@@ -274,7 +387,7 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
         were still flagged after ``policy.group_rounds`` rounds.
     """
     clock = projector.clock
-    wait_ns = int(round(wait_s * _NS))
+    wait = {"ns": int(round(wait_s * _NS))}
     timeout = _grab_timeout(settings, policy)
     events: list[str] = []
     retries = 0
@@ -291,7 +404,7 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                                         f"one pass; last problem: {failures[-1]}")
                 camera.flush()
             shown = projector.show(images[i])
-            clock.wait_until(shown.t_ns + wait_ns)
+            clock.wait_until(shown.t_ns + wait["ns"])
             t_fire = clock.now_ns()
             camera.fire()
             state["consumed"] += 1
@@ -310,8 +423,9 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                            f"{state['consumed']} trigger(s) in between: not the frame "
                            f"just triggered")
                 elif (state["last_image"] is not None
+                      and np.array_equal(f.image[::7, ::7], state["last_image"][::7, ::7])
                       and np.array_equal(f.image, state["last_image"])
-                      and float(np.std(f.image)) >= 1.0):
+                      and float(np.std(f.image[::7, ::7])) >= 1.0):
                     why = "the previous image again (stuck buffer)"
             if f.frame_id > 0 and f.status is not FrameStatus.TIMEOUT:
                 # ids consumed so far are counted from this frame on
@@ -322,8 +436,12 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                             t_fire, attempt + 1)
             failures.append(why)
             events.append(f"pattern {i}: {why}")
+        seen: dict[str, int] = {}
+        for why in failures:
+            seen[why] = seen.get(why, 0) + 1
+        said = "; ".join(f"{n} x {w}" if n > 1 else w for w, n in seen.items())
         raise CaptureFailed(f"pattern {i}: {policy.frame_retries + 1} attempts failed "
-                            f"({'; '.join(failures)})")
+                            f"({said})")
 
     shots = []
     for i in range(len(images)):
@@ -334,10 +452,15 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                                     max_value=settings.max_value, policy=policy,
                                     saturation_limit=saturation_limit,
                                     white_black=white_black)
+    _check_modulation(reports, policy)
     for _ in range(policy.group_rounds):
         if not flagged:
             break
-        events.append(f"group checks flagged frames {sorted(flagged)}: re-shot")
+        if period_s > 0:
+            wait["ns"] += int(round(period_s * _NS))
+        events.append(f"group checks flagged frames {sorted(flagged)}: re-shot"
+                      + (f", waiting {wait['ns'] / _NS * 1e3:.1f} ms after each flip"
+                         if period_s > 0 else ""))
         for i in sorted(flagged):
             retries += 1
             if retries > policy.total_retries:
@@ -354,9 +477,20 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
         msgs = [r.message for r in reports if r.flagged and r.message]
         raise CaptureFailed(f"frames {sorted(flagged)} still fail the group checks after "
                             f"{policy.group_rounds} re-shoots"
-                            + (f": {msgs[0]}" if msgs else ""))
+                            + (f": {msgs[0]}" if msgs else "")
+                            + "; if the light comes late, measure the latency again "
+                              "(telefringe capture latency)")
+    _check_modulation(reports, policy)
     _check_saturation(shots, settings, policy, saturation_limit)
     return PassResult(tuple(shots), tuple(reports), retries, tuple(events))
+
+
+def _check_modulation(reports, policy):
+    mods = [r.modulated for r in reports if r.kind == "phase" and np.isfinite(r.modulated)]
+    if mods and max(mods) < policy.min_modulated:
+        raise CaptureFailed(f"only {100 * max(mods):.2f} % of the pixels show fringes: the "
+                            f"camera does not see the projected patterns (in view? in "
+                            f"focus? lens cap? exposure?)")
 
 
 def _check_saturation(shots, settings, policy, saturation_limit):
@@ -391,7 +525,15 @@ def capture_sequenced(camera: Camera, projector: Projector, images: Sequence[np.
                             f"streamed mode")
     if settings.trigger is not Trigger.HARDWARE:
         raise CaptureFailed("sequenced mode needs the camera on its hardware trigger")
-    seq = projector.load_sequence(images, exposure_s=exposure_s, period_s=period_s)
+    if period_s is None:
+        # the camera must finish its exposure and readout before the next trigger: a
+        # whole refresh period beyond the exposure ("waste one refresh period")
+        rp = projector.info.period_s
+        period_s = ((math.ceil(settings.exposure_s / rp - 1e-9) + 1) * rp if rp > 0
+                    else 1.25 * settings.exposure_s + 0.002)
+    # each pattern stays lit for its whole period; the camera's exposure sits inside it
+    seq = projector.load_sequence(images, exposure_s=max(exposure_s, period_s),
+                                  period_s=period_s)
     events: list[str] = []
     retries = 0
     last = "no run"
@@ -430,6 +572,7 @@ def capture_sequenced(camera: Camera, projector: Projector, images: Sequence[np.
             if not flagged:
                 shots = tuple(Shot(im, f.frame_id, f.timestamp_ns, None, None, run + 1)
                               for im, f in zip(imgs, frames, strict=True))
+                _check_modulation(reports, policy)
                 _check_saturation(shots, settings, policy, saturation_limit)
                 return PassResult(shots, tuple(reports), retries, tuple(events))
             problems.append(f"group checks flagged frames {sorted(flagged)}")

@@ -245,14 +245,17 @@ def _coverage(centres, shape, cells: int = 4) -> float:
     return float(hit.mean())
 
 
-def _tilt(det) -> tuple[float, float]:
-    """Apparent tilt of the plate (deg) and the azimuth of its tilt axis (deg), from the
-    foreshortening of the detected lattice (an orthographic view of a square grid)."""
+def _tilt(det, ref=None) -> tuple[float, float]:
+    """Tilt of the plate from the reference pose (deg) and the azimuth of its tilt axis in
+    the image (deg), from the foreshortening of the detected lattice relative to the
+    reference's (an orthographic view of a square grid; a rough guide for the user)."""
     import numpy as np
 
     L = np.asarray(det.lattice, dtype=float)
     if not np.all(np.isfinite(L)):
         return float("nan"), float("nan")
+    if ref is not None and np.all(np.isfinite(ref.lattice)):
+        L = L @ np.linalg.inv(np.asarray(ref.lattice, dtype=float))
     U, s, _ = np.linalg.svd(L)
     tilt = float(np.degrees(np.arccos(np.clip(s[1] / s[0], 0.0, 1.0))))
     axis = float(np.degrees(np.arctan2(U[1, 0], U[0, 0]))) % 180.0
@@ -289,7 +292,7 @@ def calibration_cmd(
     calibration.json. With the sim driver the virtual plate moves to its next pose.
 
     Example: printf '\\n\\n\\n\\n' | telefringe capture calibration sim_cal --camera sim
-    --projector sim:preset=fast,scene=calibration,poses=4 --poses 4
+    --projector sim:preset=fast,scene=calibration,poses=5 --poses 4
     """
     import numpy as np
 
@@ -334,8 +337,10 @@ def calibration_cmd(
         names = []
         centres = []
         tilts = []
+        ref_det = None
         with atomic_dir(out, force=force) as tmp:
             k = 0
+            sim_k = 0               # the sim "user" moves the plate at every Enter
             while k < poses:
                 info(f"pose {k + 1}/{poses}: place the plate"
                      + (" (reference: flat, in the middle of the field)" if k == 0 else "")
@@ -345,7 +350,11 @@ def calibration_cmd(
                     _fail(f"stopped at pose {k + 1} of {poses}: nothing was written", 130
                           if line else 1)
                 if sim_poses is not None:
-                    cam.move_to_pose(k)
+                    if sim_k >= sim_poses:
+                        _fail(f"the sim plate has no pose left after {sim_poses}: "
+                              f"nothing was written")
+                    cam.move_to_pose(sim_k)
+                    sim_k += 1
                 n = sum(g.count for g in groups) + 2
                 with progress_bar(f"pose {k + 1}: capturing {n} frames", n) as advance:
                     res = capture_scan(cam, proj, groups=groups, white_black=True,
@@ -362,13 +371,17 @@ def calibration_cmd(
                 write_scan(tmp / name, res.scan, capture=res.capture)
                 names.append(name)
                 centres.append(det.centers)
-                tilt, axis = _tilt(det)
+                if k == 0:
+                    ref_det = det
+                    _summary(res.capture)
+                tilt, axis = (0.0, 0.0) if k == 0 else _tilt(det, ref_det)
                 tilts.append((tilt, axis))
                 cov = _coverage(centres, res.scan.white.shape)
                 tilted = [(a, b) for a, b in tilts if np.isfinite(a) and a >= 3.0]
                 dirs = len({int(b // 45) for _a, b in tilted})
                 info(f"  grid found: {det.n_found}/{target.rows * target.cols} markers; "
-                     f"apparent tilt {tilt:.1f} deg (axis {axis:.0f} deg); field covered "
+                     f"tilt from the reference {tilt:.1f} deg (axis {axis:.0f} deg); field "
+                     f"covered "
                      f"{100 * cov:.0f} %; tilted poses {len(tilted)}, tilt axes in {dirs}/4 "
                      f"directions")
                 k += 1

@@ -21,8 +21,9 @@ Timing model (all on one :class:`VirtualClock`, integer nanoseconds):
 
 Address options (``--projector sim:KEY=VALUE,...``, ``--camera sim:KEY=VALUE,...``):
 
-projector (and the rig): ``preset`` (fast, paper), ``scene`` (plate, steps, sphere, bga,
-tilted-plane, calibration), ``z`` (mm), ``poses`` (calibration poses), ``seed``,
+projector (and the rig): ``preset`` (fast, paper), ``crop`` (``WxH+X+Y``: read out only
+that window of the virtual camera's sensor, for small fast rigs), ``scene`` (plate, steps,
+sphere, bga, tilted-plane, calibration), ``z`` (mm), ``poses`` (calibration poses), ``seed``,
 ``refresh`` (Hz), ``latency`` (s), ``jitter`` (s, uniform extra latency per show),
 ``late`` (shows whose light comes one refresh period late);
 camera: ``drop`` (frames that never arrive), ``incomplete`` (buffers with lost packets),
@@ -64,7 +65,7 @@ __all__ = ["VirtualClock", "Fault", "SimConfig", "SimRig", "SimProjector", "SimC
 
 _NS = 1_000_000_000
 _PROJECTOR_KEYS = {"preset", "scene", "z", "poses", "seed", "refresh", "latency", "jitter",
-                   "late"}
+                   "late", "crop"}
 _CAMERA_KEYS = {"drop", "incomplete", "stuck", "missed", "flash", "id_start", "readout"}
 
 
@@ -134,6 +135,7 @@ class SimConfig:
     """
 
     preset: str = "fast"
+    crop: str = ""
     scene: str = "plate"
     z: float = 0.0
     poses: int = 8
@@ -179,7 +181,7 @@ def parse_address(address: str, *, kind: str, base: SimConfig | None = None) -> 
         try:
             if key in ("late", "drop", "incomplete", "stuck", "missed", "flash"):
                 changes[key] = Fault.parse(key, value)
-            elif key in ("preset", "scene"):
+            elif key in ("preset", "scene", "crop"):
                 changes[key] = value.strip()
             elif key in ("poses", "seed", "id_start"):
                 changes[key] = int(value)
@@ -235,8 +237,16 @@ class SimRig:
         self.clock = VirtualClock()
         try:
             self.vrig = get_preset(config.preset)
+            if config.crop:
+                from telefringe.simulate.presets import crop_camera
+
+                size, _, rest = config.crop.partition("+")
+                w, h = (int(v) for v in size.lower().split("x"))
+                x, y = (int(v) for v in rest.split("+"))
+                self.vrig = crop_camera(self.vrig, col0=x, row0=y, width=w, height=h)
         except ValueError as exc:
-            raise DeviceError(f"sim: {exc}") from None
+            raise DeviceError(f"sim: {exc} (crop is WIDTHxHEIGHT+X+Y)" if config.crop
+                              else f"sim: {exc}") from None
         self.poses = ()
         if config.scene == "calibration":
             self.poses = simulate_calibration_poses(self.vrig, n_poses=config.poses,
@@ -570,7 +580,7 @@ class SimCamera:
             return self._frame(e)
         clock.wait_until(deadline)
         return Frame(image=None, frame_id=-1, timestamp_ns=None, status=FrameStatus.TIMEOUT,
-                     message=f"no frame within {timeout_s:g} s")
+                     message=f"no frame within {timeout_s:.3g} s")
 
     def _frame(self, e: _Exposure) -> Frame:
         s = self.settings
