@@ -16,7 +16,8 @@ outstanding is discarded and counted (:attr:`AravisCamera.discarded`); an id jum
 the frame as INCOMPLETE with the jump in its message. After a grab timed out, the frame of
 that trigger may still arrive later: the next :meth:`~AravisCamera.fire` or
 :meth:`~AravisCamera.flush` then restarts the stream on a new port first, so a late frame
-can never be taken for the answer to a new trigger.
+can never be taken for the answer to a new trigger. An INCOMPLETE frame carries no image
+(its missing packets would be garbage), only its id, time stamp and Aravis's words.
 """
 
 from __future__ import annotations
