@@ -98,8 +98,11 @@ def accept_cmd(
     bands of the test's expanded uncertainty. The cap of every sphere seen is reported (a
     single view sees a cap, which makes PS less certain). See docs/acceptance.md.
 
-    Example: telefringe accept sim_acc/acceptance --rig rig.json --artefacts
-    sim_acc/artefacts.json --mpe PF=0.01,PS=0.01,SD=0.015,F=0.01 --json result.json
+    Example: telefringe accept acc/acceptance --rig rig.json --artefacts acc/artefacts.json
+
+    (acc from 'telefringe simulate acceptance acc', rig.json from calibrating the same
+    virtual rig; add --mpe PF=0.02,PS=0.02,SD=0.02,F=0.03 --json result.json for a verdict
+    and a file.)
     """
     from telefringe.fringes.decode import DecodeError
     from telefringe.fringes.phase import PhaseInputError
