@@ -166,14 +166,16 @@ def result_to_json(result, *, rig: str = "", folder: str = "") -> dict:
             t = by_name[name].test
             if isinstance(t, SphereTest):
                 e.update(diameter=_f(t.diameter), cap_half_angle_deg=_f(t.cap_half_angle_deg),
-                         n_points=t.n_points, n_excluded=t.n_excluded)
+                         n_points=t.n_points, n_excluded=t.n_excluded,
+                         rms=_f(np.sqrt(np.mean(t.fit.residuals ** 2))))
             elif isinstance(t, SpacingTest):
                 e.update(distance=_f(t.distance),
                          cap_half_angle_deg=[_f(s.cap_half_angle_deg) for s in t.spheres],
                          n_points=[s.n_points for s in t.spheres],
                          n_excluded=[s.n_excluded for s in t.spheres])
             else:
-                e.update(n_points=t.n_points, n_excluded=t.n_excluded)
+                e.update(n_points=t.n_points, n_excluded=t.n_excluded,
+                         rms=_f(np.sqrt(np.mean(t.fit.residuals ** 2))))
             entries.append(e)
         doc[q] = {"positions": entries, "max": _f(qr.max_value),
                   "max_position": qr.max_position, "mpe": qr.mpe,
