@@ -169,3 +169,28 @@ def test_accept_refuses_bad_input_in_one_line(accepted, capsys):
     assert main(missing) == 2
     assert "nope.json: not found" in capsys.readouterr().err
     assert not (tmp / "other.json").exists()
+
+
+def test_free_spheres_and_rect_plate_intersections():
+    rng = np.random.default_rng(4)
+    d = np.array([0.1, -0.2, -1.0])
+    d /= np.linalg.norm(d)
+    sph = FreeSpheres(centres=[[0.0, 0.0, 0.0], [5.0, 0.0, 1.0]], radii=[1.0, 2.0])
+    o = np.column_stack([rng.uniform(-2, 8, 4000), rng.uniform(-3, 3, 4000),
+                         np.zeros(4000)]) - 60 * d  # rays through z = 0 there
+    h = sph.intersect(o, d)
+    p = o + h.t[:, None] * d
+    k = h.part
+    hit = h.hit
+    assert hit.sum() > 1000 and np.all(k[hit] >= 0) and np.all(k[~hit] == -1)
+    r = np.linalg.norm(p[hit] - sph.centres[k[hit]], axis=1)
+    np.testing.assert_allclose(r, sph.radii[k[hit]], atol=1e-9)
+    assert np.all(h.normal[hit] @ d < 0)  # facing the ray
+    plate = RectPlate(length=4.0, width=2.0, R_world_scene=np.eye(3),
+                      t_world_scene=[1.0, 2.0, 0.5])
+    h = plate.intersect(o, d)
+    p = o + np.where(h.hit, h.t, 0)[:, None] * d
+    inside = (np.abs(p[:, 0] - 1) <= 2) & (np.abs(p[:, 1] - 2) <= 1)
+    assert np.array_equal(h.hit, inside & h.hit) and h.hit.sum() > 100
+    np.testing.assert_allclose(p[h.hit, 2], 0.5, atol=1e-12)
+    assert np.all(h.normal[h.hit] @ d < 0)

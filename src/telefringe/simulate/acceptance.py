@@ -108,7 +108,8 @@ def measuring_volume(vrig: VirtualRig, *, margin: float = 0.03, n: int = 121
     uu = np.array([0, w - 1, w - 1, 0, (w - 1) / 2, (w - 1) / 2, 0, w - 1], dtype=float)
     vv = np.array([0, 0, h - 1, h - 1, 0, h - 1, (h - 1) / 2, (h - 1) / 2], dtype=float)
     o, d = cam.backproject(uu, vv)
-    foot = o - (o[:, 2] / d[2])[:, None] * d  # on z = 0
+    d = np.broadcast_to(d, o.shape)  # (3,) for a telecentric camera, per pixel otherwise
+    foot = o - (o[:, 2] / d[:, 2])[:, None] * d  # on z = 0
     lo, hi = foot[:, :2].min(axis=0), foot[:, :2].max(axis=0)
     xs = np.linspace(lo[0], hi[0], n)
     ys = np.linspace(lo[1], hi[1], n)

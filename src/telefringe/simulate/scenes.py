@@ -597,11 +597,12 @@ class FreeSpheres:
     def intersect(self, origins, direction) -> Hits:
         o, d = _check_rays(origins, direction)
         n = o.shape[0]
+        dd = np.broadcast_to(d, o.shape)  # one direction per ray (parallel rays share it)
         t = np.full(n, np.inf)
         part = np.full(n, -1, dtype=np.int32)
         for k, (c, r) in enumerate(zip(self.centres, self.radii, strict=True)):
             oc = o - c
-            b = oc @ d
+            b = np.einsum("ij,ij->i", oc, dd)
             disc = b * b - (np.einsum("ij,ij->i", oc, oc) - r * r)
             with np.errstate(invalid="ignore"):
                 tk = -b - np.sqrt(np.where(disc >= 0, disc, np.nan))
@@ -611,9 +612,11 @@ class FreeSpheres:
         hit = part >= 0
         normal = np.zeros((n, 3))
         if hit.any():
-            p = o[hit] + t[hit, None] * d
-            normal[hit] = (p - self.centres[part[hit]]) / self.radii[part[hit], None]
-            normal[hit] = _face_ray(normal[hit], d)
+            p = o[hit] + t[hit, None] * dd[hit]
+            nrm = (p - self.centres[part[hit]]) / self.radii[part[hit], None]
+            # facing the incoming ray
+            normal[hit] = nrm * np.where(np.einsum("ij,ij->i", nrm, dd[hit]) > 0, -1.0,
+                                         1.0)[:, None]
         return Hits(t=t, normal=normal, albedo=np.where(hit, float(self.albedo), 0.0),
                     specular=np.zeros(n), part=part)
 
@@ -671,17 +674,19 @@ class RectPlate:
         n_rays = o.shape[0]
         R, c = self.R_world_scene, self.t_world_scene
         nz = R[:, 2]
-        den = float(d @ nz)
+        dd = np.broadcast_to(d, o.shape)  # one direction per ray (parallel rays share it)
+        den = dd @ nz
         t = np.full(n_rays, np.inf)
-        if abs(den) > 1e-12:
-            with np.errstate(invalid="ignore"):
-                tt = ((c - o) @ nz) / den
-                q = (o + tt[:, None] * d - c) @ R[:, :2]
-                ok = (np.isfinite(tt) & (tt > 0) & (np.abs(q[:, 0]) <= self.length / 2)
-                      & (np.abs(q[:, 1]) <= self.width / 2))
-            t[ok] = tt[ok]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tt = np.where(np.abs(den) > 1e-12, ((c - o) @ nz) / np.where(den == 0, 1.0, den),
+                          np.nan)
+            q = (o + tt[:, None] * dd - c) @ R[:, :2]
+            ok = (np.isfinite(tt) & (tt > 0) & (np.abs(q[:, 0]) <= self.length / 2)
+                  & (np.abs(q[:, 1]) <= self.width / 2))
+        t[ok] = tt[ok]
         hit = np.isfinite(t)
-        normal = np.where(hit[:, None], _face_ray(np.tile(nz, (n_rays, 1)), d), 0.0)
+        facing = np.where(den > 0, -1.0, 1.0)[:, None] * nz
+        normal = np.where(hit[:, None], facing, 0.0)
         return Hits(t=t, normal=normal, albedo=np.where(hit, float(self.albedo), 0.0),
                     specular=np.zeros(n_rays), part=np.where(hit, 0, -1).astype(np.int32))
 
