@@ -158,7 +158,7 @@ def test_artefact_regions_orders_left_to_right_and_erodes():
     m[5:15, 25:35] = True   # right, 100 px
     m[5:20, 2:12] = True    # left, 150 px
     m[25:27, 20:22] = True  # a speck
-    a, b = artefact_regions(m, 2)
+    a, b = artefact_regions(m, 2, erode_px=1)
     assert a[:, :20].any() and not a[:, 20:].any() and b[:, 20:].any()
     assert a.sum() == 13 * 8 and b.sum() == 8 * 8  # one pixel off every border
     with pytest.raises(MetrologyError, match="found 2"):
