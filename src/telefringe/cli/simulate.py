@@ -193,9 +193,14 @@ def acceptance(
 
     _check_options(seed=seed)
     check_can_write(out, force=force)
+    from telefringe.io.errors import InputError
+
     vrig = get_preset(rig.value)
-    vol = measuring_volume(vrig)
-    art, positions = acceptance_positions(vrig, vol)
+    try:
+        vol = measuring_volume(vrig)
+        art, positions = acceptance_positions(vrig, vol)
+    except ValueError as exc:  # a rig whose volume cannot hold the artefacts
+        raise InputError(str(exc)) from None
     u = U_CERTIFICATE_MM
     cert = Artefacts(sphere_diameter=art.sphere_diameter, u_sphere_diameter=u, sphere_form=0.0,
                      u_sphere_form=u, bar_distance=art.bar_distance, u_bar_distance=u,
