@@ -56,6 +56,7 @@ def _flags_show_no_type() -> None:
 
 def _register_all():
     from telefringe.cli import (
+        accept,
         calibrate,
         capture,
         decode,
@@ -67,7 +68,8 @@ def _register_all():
         simulate,
     )
 
-    for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo):
+    for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo,
+                accept):
         mod.register(app)
     capture.register(app)
     # one-line summaries in `telefringe --help`: the first paragraph of each docstring,
