@@ -36,7 +36,7 @@ from telefringe.acquisition.base import (
 
 __all__ = ["CaptureFailed", "Policy", "Shot", "GroupReport", "PassResult", "wait_periods",
            "round_exposure", "capture_streamed", "capture_sequenced", "check_groups",
-           "to_stored"]
+           "to_stored", "check_modulation"]
 
 _NS = 1_000_000_000
 
@@ -452,7 +452,6 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                                     max_value=settings.max_value, policy=policy,
                                     saturation_limit=saturation_limit,
                                     white_black=white_black)
-    _check_modulation(reports, policy)
     for _ in range(policy.group_rounds):
         if not flagged:
             break
@@ -480,12 +479,13 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                             + (f": {msgs[0]}" if msgs else "")
                             + "; if the light comes late, measure the latency again "
                               "(telefringe capture latency)")
-    _check_modulation(reports, policy)
     _check_saturation(shots, settings, policy, saturation_limit)
     return PassResult(tuple(shots), tuple(reports), retries, tuple(events))
 
 
-def _check_modulation(reports, policy):
+def check_modulation(reports, policy) -> None:
+    """Fail when no phase group of a scan (all passes' reports) shows fringes on at least
+    ``policy.min_modulated`` of the pixels."""
     mods = [r.modulated for r in reports if r.kind == "phase" and np.isfinite(r.modulated)]
     if mods and max(mods) < policy.min_modulated:
         raise CaptureFailed(f"only {100 * max(mods):.2f} % of the pixels show fringes: the "
@@ -572,7 +572,6 @@ def capture_sequenced(camera: Camera, projector: Projector, images: Sequence[np.
             if not flagged:
                 shots = tuple(Shot(im, f.frame_id, f.timestamp_ns, None, None, run + 1)
                               for im, f in zip(imgs, frames, strict=True))
-                _check_modulation(reports, policy)
                 _check_saturation(shots, settings, policy, saturation_limit)
                 return PassResult(shots, tuple(reports), retries, tuple(events))
             problems.append(f"group checks flagged frames {sorted(flagged)}")
