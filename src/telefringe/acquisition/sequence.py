@@ -427,8 +427,11 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                       and np.array_equal(f.image, state["last_image"])
                       and float(np.std(f.image[::7, ::7])) >= 1.0):
                     why = "the previous image again (stuck buffer)"
-            if f.frame_id > 0 and f.status is not FrameStatus.TIMEOUT:
-                # ids consumed so far are counted from this frame on
+            if (f.frame_id > 0 and f.status is not FrameStatus.TIMEOUT
+                    and (state["last_id"] <= 0
+                         or 0 < verify.id_gap(state["last_id"], f.frame_id) < 32768)):
+                # ids consumed so far are counted from this frame on (an older frame
+                # delivered late does not move the count back)
                 state["last_id"], state["consumed"] = f.frame_id, 0
             if not why:
                 state["last_image"] = f.image
