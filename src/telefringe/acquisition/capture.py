@@ -155,6 +155,9 @@ def capture_scan(camera: Camera, projector: Projector, *, groups: Sequence,
         trig = Trigger.HARDWARE if mode == "sequenced" else Trigger.SOFTWARE
         settings = camera.configure(exposure_s=applied_want, gain_db=gain_db,
                                     pixel_format=pixel_format, roi=roi, trigger=trig)
+        if e_index == 0 and abs(settings.gain_db - gain_db) > 0.05:
+            warnings.append(f"the camera set gain {settings.gain_db:g} dB for {gain_db:g} dB "
+                            f"asked")
         if abs(settings.exposure_s - applied_want) > 1e-3 * applied_want:
             warnings.append(f"the camera set exposure {settings.exposure_s * 1e3:.3f} ms for "
                             f"{applied_want * 1e3:.3f} ms asked")
