@@ -290,3 +290,17 @@ def test_capture_block_is_validated(tmp_path):
     # a scan without the block still reads (the block is optional)
     write_scan(tmp_path / "plain", scan)
     assert read_capture(tmp_path / "plain") is None
+
+
+def test_a_camera_that_sees_no_fringes_is_one_clear_error():
+    from telefringe.acquisition.sequence import (
+        CaptureFailed,
+        GroupReport,
+        Policy,
+        check_modulation,
+    )
+
+    seen = [GroupReport("phase", modulated=0.004), GroupReport("phase", modulated=0.2)]
+    check_modulation(seen, Policy())
+    with pytest.raises(CaptureFailed, match="does not see the projected patterns"):
+        check_modulation([GroupReport("phase", modulated=0.004)], Policy())

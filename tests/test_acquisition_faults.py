@@ -19,6 +19,9 @@ SMALL = "sim:preset=fast,crop=96x80+112+88"
 # show / trigger order: u 16 periods frames 0-3, u 64 periods 4-7, white 8, black 9
 GROUPS = (PhaseGroup("u", 16, 4), PhaseGroup("u", 64, 4))
 LAT = LatencyUsed(0.025, "option")
+#: largest phase-step error of a clean group of this rig: 2 x the 1.06 mrad measured over
+#: seeds 0-3 (what the re-shot scans must show too)
+CLEAN_STEP = 2.2e-3
 
 
 def _capture(proj="", cam="", *, groups=GROUPS, mode="streamed", exposures=(1.0,),
@@ -50,7 +53,7 @@ def test_clean_capture_needs_no_retry(clean):
     # both groups see several periods: their phase steps are checked, and tight
     checks = [c for c in cap["checks"] if c["kind"] == "phase"]
     assert all(c["phase_step_check"] for c in checks)
-    assert max(c["max_step_error_rad"] for c in checks) < 0.01
+    assert max(c["max_step_error_rad"] for c in checks) < CLEAN_STEP
 
 
 @pytest.mark.parametrize("fault, detected_by", [
@@ -67,7 +70,7 @@ def test_camera_faults_are_reshot(fault, detected_by, clean):
     assert cap["retries"] >= 1
     # the scan that comes out is a clean one: same frames as the clean capture's up to
     # noise (its phase steps pass; no frame is a copy or saturated)
-    assert all(c["max_step_error_rad"] < 0.01 for c in cap["checks"])
+    assert all(c["max_step_error_rad"] < CLEAN_STEP for c in cap["checks"])
     assert max(c["saturated_fraction"] for c in cap["checks"]) < 0.001
     assert not verify.duplicate_frames([s for st in res.scan.stacks for s in st])
     for a, b in zip(res.scan.stacks, clean.scan.stacks, strict=True):
@@ -91,7 +94,7 @@ def test_late_light_is_caught_by_the_phase_step_check(clean):
     ids = [f["id"] for f in res.capture["frames"]]
     assert len(set(ids)) == len(ids)                 # re-shot frames carry new ids
     assert max(f["attempts"] for f in res.capture["frames"][:4]) >= 2
-    assert all(c["max_step_error_rad"] < 0.01 for c in res.capture["checks"])
+    assert all(c["max_step_error_rad"] < CLEAN_STEP for c in res.capture["checks"])
     # without re-shooting it would have gone through with its wrong step: show that the
     # check's verdict is what stops it
     with pytest.raises(CaptureFailed, match="group checks"):
@@ -108,8 +111,8 @@ def test_latency_jitter_is_reshot_until_clean():
     # every show one period late: the same
     res = _capture(proj="late=1")
     assert "waiting 50.0 ms" in _events(res) and res.capture["retries"] >= 8
-    assert all(c["max_step_error_rad"] < 0.01 for c in res.capture["checks"])
-    assert all(c["max_step_error_rad"] < 0.01 for c in res.capture["checks"])
+    assert all(c["max_step_error_rad"] < CLEAN_STEP for c in res.capture["checks"])
+    assert all(c["max_step_error_rad"] < CLEAN_STEP for c in res.capture["checks"])
 
 
 def test_id_wrap_is_no_fault():

@@ -398,7 +398,7 @@ _D = "telefringe.acquisition.drivers."
 CAMERA_DRIVERS: dict[str, DriverEntry] = {
     "sim": DriverEntry("sim", _D + "sim", None, "nothing", "the virtual rig's camera "
                        "(pairs with the sim projector; virtual clock)",
-                       "[preset=NAME,scene=NAME,seed=N,fault=NAME:RATE,...]",
+                       "[preset=NAME,scene=NAME,seed=N,drop=P|@I+J,...]",
                        ("camera", "projector")),
     "aravis": DriverEntry("aravis", _D + "aravis", None,
                           "the Aravis 0.8 library (Debian: apt-get install libaravis-0.8-0)",
@@ -461,10 +461,10 @@ def load_driver(name: str, kind: str):
         if missing == entry.module or missing.startswith("telefringe."):
             raise DriverUnavailable(f"the {name} {kind} driver is not part of this "
                                     f"telefringe version") from exc
-        how = (f"pip install 'telefringe[{entry.extra}]'" if entry.extra
-               else "reinstall telefringe")
+        how = (f"; install it: pip install 'telefringe[{entry.extra}]'" if entry.extra
+               else "")
         raise DriverUnavailable(f"the {name} driver needs {entry.needs} "
-                                f"({missing or exc}); install it: {how}") from exc
+                                f"(missing: {missing or exc}){how}") from exc
 
 
 def open_projector(spec: str) -> Projector:

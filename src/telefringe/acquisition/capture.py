@@ -22,6 +22,7 @@ from telefringe.acquisition.sequence import (
     Policy,
     capture_sequenced,
     capture_streamed,
+    check_modulation,
     round_exposure,
     to_stored,
     wait_periods,
@@ -154,6 +155,9 @@ def capture_scan(camera: Camera, projector: Projector, *, groups: Sequence,
         trig = Trigger.HARDWARE if mode == "sequenced" else Trigger.SOFTWARE
         settings = camera.configure(exposure_s=applied_want, gain_db=gain_db,
                                     pixel_format=pixel_format, roi=roi, trigger=trig)
+        if e_index == 0 and abs(settings.gain_db - gain_db) > 0.05:
+            warnings.append(f"the camera set gain {settings.gain_db:g} dB for {gain_db:g} dB "
+                            f"asked")
         if abs(settings.exposure_s - applied_want) > 1e-3 * applied_want:
             warnings.append(f"the camera set exposure {settings.exposure_s * 1e3:.3f} ms for "
                             f"{applied_want * 1e3:.3f} ms asked")
@@ -176,6 +180,9 @@ def capture_scan(camera: Camera, projector: Projector, *, groups: Sequence,
             rel = float(factor)         # the camera's own rounding (us steps) is no change
         passes.append((rel, settings, res, layout))
     camera.stop()
+    # fringes must be seen somewhere (an HDR set's shortest pass may see them only on
+    # highlights, its longest clip much of the field)
+    check_modulation([r for p in passes for r in p[2].groups], policy)
     return _assemble(camera, projector, passes, white_black=white_black, mode=mode,
                      latency=latency, n_wait=n_wait, wait_s=wait_s, warnings=warnings,
                      t_start=t_start, base_exposure=exposure_s)

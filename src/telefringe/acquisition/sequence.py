@@ -36,7 +36,7 @@ from telefringe.acquisition.base import (
 
 __all__ = ["CaptureFailed", "Policy", "Shot", "GroupReport", "PassResult", "wait_periods",
            "round_exposure", "capture_streamed", "capture_sequenced", "check_groups",
-           "to_stored"]
+           "to_stored", "check_modulation"]
 
 _NS = 1_000_000_000
 
@@ -427,8 +427,11 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                       and np.array_equal(f.image, state["last_image"])
                       and float(np.std(f.image[::7, ::7])) >= 1.0):
                     why = "the previous image again (stuck buffer)"
-            if f.frame_id > 0 and f.status is not FrameStatus.TIMEOUT:
-                # ids consumed so far are counted from this frame on
+            if (f.frame_id > 0 and f.status is not FrameStatus.TIMEOUT
+                    and (state["last_id"] <= 0
+                         or 0 < verify.id_gap(state["last_id"], f.frame_id) < 32768)):
+                # ids consumed so far are counted from this frame on (an older frame
+                # delivered late does not move the count back)
                 state["last_id"], state["consumed"] = f.frame_id, 0
             if not why:
                 state["last_image"] = f.image
@@ -452,7 +455,6 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                                     max_value=settings.max_value, policy=policy,
                                     saturation_limit=saturation_limit,
                                     white_black=white_black)
-    _check_modulation(reports, policy)
     for _ in range(policy.group_rounds):
         if not flagged:
             break
@@ -480,12 +482,13 @@ def capture_streamed(camera: Camera, projector: Projector, images: Sequence[np.n
                             + (f": {msgs[0]}" if msgs else "")
                             + "; if the light comes late, measure the latency again "
                               "(telefringe capture latency)")
-    _check_modulation(reports, policy)
     _check_saturation(shots, settings, policy, saturation_limit)
     return PassResult(tuple(shots), tuple(reports), retries, tuple(events))
 
 
-def _check_modulation(reports, policy):
+def check_modulation(reports, policy) -> None:
+    """Fail when no phase group of a scan (all passes' reports) shows fringes on at least
+    ``policy.min_modulated`` of the pixels."""
     mods = [r.modulated for r in reports if r.kind == "phase" and np.isfinite(r.modulated)]
     if mods and max(mods) < policy.min_modulated:
         raise CaptureFailed(f"only {100 * max(mods):.2f} % of the pixels show fringes: the "
@@ -572,7 +575,6 @@ def capture_sequenced(camera: Camera, projector: Projector, images: Sequence[np.
             if not flagged:
                 shots = tuple(Shot(im, f.frame_id, f.timestamp_ns, None, None, run + 1)
                               for im, f in zip(imgs, frames, strict=True))
-                _check_modulation(reports, policy)
                 _check_saturation(shots, settings, policy, saturation_limit)
                 return PassResult(shots, tuple(reports), retries, tuple(events))
             problems.append(f"group checks flagged frames {sorted(flagged)}")
