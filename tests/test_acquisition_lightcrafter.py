@@ -165,7 +165,7 @@ def test_lightcrafter_packs_three_patterns_into_one_hdmi_frame():
             assert number == k
             assert np.array_equal(frame[..., lc.PLANE_OF_PATTERN[number]], pat)
         assert emu.triggers == 3
-        with pytest.raises(NotSupported, match="groups of 3"):
+        with pytest.raises(NotSupported, match="--mode streamed"):
             p.load_sequence(pats + pats[:1], exposure_s=0.005)
         p.stop_sequence()
         p.show(pats[0])                            # streamed mode: plain video

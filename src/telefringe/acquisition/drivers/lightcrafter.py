@@ -158,7 +158,8 @@ class LightCrafterProjector:
         n = len(images)
         if not 1 <= n <= 3:
             raise NotSupported(f"the LightCrafter holds 1 to 3 8-bit patterns per video "
-                               f"frame; got {n}: split the sequence into groups of 3")
+                               f"frame; got {n}: capture with --mode streamed (or sequence "
+                               f"groups of at most 3)")
         if not trigger_out:
             raise NotSupported("the LightCrafter sequence always pulses TRIG_OUT_1")
         w, h = NATIVE_SIZE
@@ -171,7 +172,8 @@ class LightCrafterProjector:
         exposure_us = int(round(exposure_s * 1e6))
         if period_us * n > frame_us:
             raise NotSupported(f"{n} patterns of {period_us} us do not fit in one "
-                               f"{frame_us} us video frame")
+                               f"{frame_us} us video frame: shorten the exposure, or capture "
+                               f"with --mode streamed")
         entries = [_d.lut_entry(trigger=0 if k == 0 else 3, pattern=k, bit_depth=8, leds=7,
                                 buffer_swap=k == 0) for k in range(n)]
         rgb = np.zeros((h, w, 3), dtype=np.uint8)
