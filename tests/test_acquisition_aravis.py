@@ -163,6 +163,38 @@ def test_id_gap_wraps_like_gige_vision():
     assert aravis.id_gap(3, 2, wrap16=True) == 65534     # an old frame is far "ahead"
 
 
+def test_which_frame_answers_a_trigger():
+    """The decision table of the software-trigger bookkeeping, case by case (the fake
+    camera cannot produce every case on demand)."""
+    cam = aravis.AravisCamera.__new__(aravis.AravisCamera)
+    cam._gv, cam.discarded = True, 0
+    img = np.zeros((2, 2), np.uint8)
+
+    def judge(owed, last, fid, *, status=0, arrived=2_000, t_fire=1_000):
+        cam._reset_counts()
+        cam._owed, cam._last_id, cam._t_fire_ns = owed, last, t_fire
+        return cam._judge(status, fid, 0, arrived, img if status == 0 else None, True)
+
+    assert judge(0, 10, 11) is None                           # nothing was asked for
+    assert judge(1, None, 5, arrived=500) is None             # began before the trigger
+    assert judge(1, None, 5).ok                               # first after start
+    assert judge(1, 65535, 1).ok                              # the GigE Vision wrap
+    jump = judge(1, 10, 12)
+    assert not jump.ok and "jumped by 2" in jump.message
+    assert judge(1, 10, 10) is None                           # an id already seen
+    assert not judge(1, 10, 9).ok                             # an older id: never OK
+    late = judge(1, 10, 11, arrived=500)
+    assert not late.ok and "before the trigger" in late.message
+    lost = judge(1, 10, 11, status=3, arrived=500)            # leader lost: stale id/time
+    assert lost.status is FrameStatus.INCOMPLETE and lost.frame_id == -1
+    assert lost.image is None and cam._last_id is None
+    # two triggers outstanding: the first frame arrived before the second trigger
+    cam._reset_counts()
+    cam._owed, cam._last_id, cam._t_fire_ns = 2, 10, 1_000
+    assert cam._judge(0, 11, 0, 500, img, True).ok
+    assert cam._judge(0, 12, 0, 2_000, img, True).ok and cam._owed == 0
+
+
 def test_full_scan_by_software_trigger_measures_like_direct_render(rig8):
     """A full scan (2 axes x 2 periods x 4 steps + white + black) through GigE Vision:
     every frame is bit-identical to the rig's render of the pattern shown, the ids run on

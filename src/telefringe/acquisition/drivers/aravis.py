@@ -342,7 +342,7 @@ class AravisCamera:
         if self._owed <= 0:
             self.discarded += 1              # not asked for: never returned
             return None
-        before_fire = arrived < self._t_fire_ns
+        before_fire = 0 < arrived < self._t_fire_ns      # 0: the stream did not say
         if status != 0:
             # a buffer whose leader was lost keeps the id and arrival time of its last
             # use: only trust them when the arrival is after the trigger
@@ -365,6 +365,9 @@ class AravisCamera:
             self._owed -= 1
             return Frame(image, fid, ts, FrameStatus.OK)
         self._owed = max(0, self._owed - gap)
+        if gap == 1:
+            return Frame(image, fid, ts, FrameStatus.INCOMPLETE,
+                         f"frame {fid} began arriving before the trigger it would answer")
         return Frame(image, fid, ts, FrameStatus.INCOMPLETE,
                      f"frame id jumped by {gap} to {fid}: frames were lost or not triggered "
                      f"by us")
