@@ -56,6 +56,7 @@ def _flags_show_no_type() -> None:
 
 def _register_all():
     from telefringe.cli import (
+        batch,
         calibrate,
         decode,
         demo,
@@ -68,6 +69,7 @@ def _register_all():
 
     for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo):
         mod.register(app)
+    batch.register(app)
     # one-line summaries in `telefringe --help`: the first paragraph of each docstring,
     # its hard line breaks joined
     for cmd in app.registered_commands:
