@@ -90,47 +90,16 @@ def _sphere_start_fixed(p: np.ndarray, w: np.ndarray, r: float) -> np.ndarray:
 
 def _sphere_geometric(p: np.ndarray, w: np.ndarray, c: np.ndarray, r: float,
                       max_iter: int = 100, *, fixed_radius: bool = False):
-    """Levenberg-Marquardt on the radial residuals |p - c| - r (r fixed if asked)."""
-    sw = np.sqrt(w)
-    x = np.concatenate([c, [r]])
-    lam = 1e-3
-    npar = 3 if fixed_radius else 4
+    """Levenberg-Marquardt on the radial residuals |p - c| - r (r fixed if asked); the
+    compiled loop :func:`telefringe.metrology._fit_kernels.sphere_lm`. Returns
+    (centre (3,), radius, residuals (m,), weighted Jacobian (m, 3 or 4))."""
+    from telefringe.metrology._fit_kernels import sphere_lm
 
-    def resid(x):
-        d = p - x[:3]
-        dist = np.sqrt(np.sum(d * d, axis=1))
-        return dist - x[3], d, dist
-
-    def jac(d, dist):
-        J = np.column_stack([-d / dist[:, None], -np.ones(p.shape[0])]) * sw[:, None]
-        return J[:, :npar]
-
-    f, d, dist = resid(x)
-    cost = float(np.sum(w * f * f))
-    for _ in range(max_iter):
-        J = jac(d, dist)
-        fw = f * sw
-        H = J.T @ J
-        g = J.T @ fw
-        improved = False
-        for _ in range(20):
-            step = np.zeros(4)
-            step[:npar] = -np.linalg.solve(H + lam * np.diag(np.diag(H)), g)
-            xn = x + step
-            fn, dn, distn = resid(xn)
-            cn = float(np.sum(w * fn * fn))
-            if cn <= cost:
-                x, f, d, dist, cost_old, cost = xn, fn, dn, distn, cost, cn
-                lam = max(lam / 10, 1e-12)
-                improved = True
-                break
-            lam *= 10
-        if not improved:
-            break
-        if np.linalg.norm(step) <= 1e-12 * (1.0 + np.linalg.norm(x)) or (
-                cost_old - cost) <= 1e-15 * max(cost_old, 1e-300):
-            break
-    return x[:3], float(x[3]), f, jac(d, dist)
+    x0 = np.array([c[0], c[1], c[2], r], dtype=np.float64)
+    x, f, J = sphere_lm(np.ascontiguousarray(p, dtype=np.float64),
+                        np.ascontiguousarray(w, dtype=np.float64), x0,
+                        3 if fixed_radius else 4, int(max_iter))
+    return x[:3], float(x[3]), f, J
 
 
 def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 4.0,
