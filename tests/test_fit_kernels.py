@@ -31,7 +31,7 @@ def test_sphere_lm_kernel_matches_scipy_least_squares():
         start = c + rng.normal(0, 0.01, 3)
         cc, r, f, J = _sphere_geometric(p, w, start, 0.225, fixed_radius=fixed)
 
-        def res(x):
+        def res(x, p=p, w=w, fixed=fixed):
             rad = 0.225 if fixed else x[3]
             return np.sqrt(w) * (np.linalg.norm(p - x[:3], axis=1) - rad)
 
