@@ -148,3 +148,100 @@ def lmeds_trials(sub, triples, normals, offsets, medians):
         normals[t, 2] = n2
         offsets[t] = d
         medians[t] = np.median(r2)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _start_fixed(p, w, r):
+    """The start of a fixed-radius fit of a cap seen from the camera side: the weighted total least
+    squares plane of the points, the mean of their highest quarter along its normal, minus
+    r times the normal."""
+    m = p.shape[0]
+    sw = 0.0
+    for i in range(m):
+        sw += w[i]
+    c = np.zeros(3)
+    for k in range(3):
+        s = 0.0
+        for i in range(m):
+            s += p[i, k] * w[i]
+        c[k] = s / sw
+    S = np.zeros((3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            s = 0.0
+            for i in range(m):
+                s += (p[i, a] - c[a]) * w[i] * (p[i, b] - c[b])
+            S[a, b] = s
+            S[b, a] = s
+    _, evecs = np.linalg.eigh(S)
+    n = evecs[:, 0].copy()
+    if n[2] < 0:
+        n = -n
+    h = np.empty(m)
+    for i in range(m):
+        h[i] = (p[i, 0] - c[0]) * n[0] + (p[i, 1] - c[1]) * n[1] + (p[i, 2] - c[2]) * n[2]
+    q = np.percentile(h, 75.0)
+    top = np.zeros(3)
+    cnt = 0
+    for i in range(m):
+        if h[i] >= q:
+            cnt += 1
+            for k in range(3):
+                top[k] += p[i, k]
+    return top / cnt - r * n
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def sphere_fixed_robust(p, w, start, has_start, r, reject_k, rounds, mad):
+    """The fixed-radius branch of :func:`telefringe.metrology.spheres.fit_sphere`: up to
+    ``rounds`` fits (:func:`sphere_lm`, from ``start`` or :func:`_start_fixed`), each
+    keeping the points whose radial residual times sqrt(w) is within ``reject_k`` robust
+    (MAD) standard deviations of the last fit's, until the kept points repeat.
+
+    Returns (ok, centre (3,), residuals f of the kept points, weighted Jacobian J, keep
+    (m,) bool of the last fit); ok False when fewer than 5 points are kept.
+    """
+    m = p.shape[0]
+    keep = np.ones(m, dtype=np.bool_)
+    x = np.zeros(4)
+    f = np.empty(0)
+    J = np.empty((0, 3))
+    fitted = keep.copy()
+    sq = np.sqrt(w)
+    for _ in range(rounds):
+        n_keep = 0
+        for i in range(m):
+            n_keep += keep[i]
+        if n_keep < 5:
+            return False, x[:3].copy(), f, J, keep
+        pk = np.empty((n_keep, 3))
+        wk = np.empty(n_keep)
+        j = 0
+        for i in range(m):
+            if keep[i]:
+                pk[j] = p[i]
+                wk[j] = w[i]
+                j += 1
+        c0 = start if has_start else _start_fixed(pk, wk, r)
+        x0 = np.array([c0[0], c0[1], c0[2], r])
+        x, f, J = sphere_lm(pk, wk, x0, 3, 100)
+        fitted = keep.copy()
+        if rounds == 1:
+            break
+        a = np.empty(n_keep)
+        for i in range(n_keep):
+            a[i] = abs(f[i] * np.sqrt(wk[i]))
+        scale = mad * np.median(a) + 1e-15
+        same = True
+        new_keep = np.empty(m, dtype=np.bool_)
+        for i in range(m):
+            dx = p[i, 0] - x[0]
+            dy = p[i, 1] - x[1]
+            dz = p[i, 2] - x[2]
+            res = (np.sqrt(dx * dx + dy * dy + dz * dz) - x[3]) * sq[i]
+            new_keep[i] = abs(res) <= reject_k * scale
+            same = same and new_keep[i] == keep[i]
+        if same:
+            break
+        keep = new_keep
+    return True, x[:3].copy(), f, J, fitted
