@@ -14,21 +14,20 @@ import signal
 import time
 import warnings
 
+import distributed
 import numpy as np
+import pandas as pd
 import pytest
 
-distributed = pytest.importorskip("distributed")
-pd = pytest.importorskip("pandas")
-
-import telefringe.simulate.render as sim  # noqa: E402
-from telefringe.batch import FIXED_COLUMNS, FIXED_TYPES, measure_many  # noqa: E402
-from telefringe.batch.scans import expand_scans, scan_names  # noqa: E402
-from telefringe.cli import main  # noqa: E402
-from telefringe.io.errors import InputError  # noqa: E402
-from telefringe.io.rig_json import bare_rig_json  # noqa: E402
-from telefringe.io.scan_json import write_scan  # noqa: E402
-from telefringe.simulate import scenes  # noqa: E402
-from telefringe.simulate.presets import crop_camera, get_preset  # noqa: E402
+import telefringe.simulate.render as sim
+from telefringe.batch import FIXED_COLUMNS, FIXED_TYPES, measure_many
+from telefringe.batch.scans import expand_scans, scan_names
+from telefringe.cli import main
+from telefringe.io.errors import InputError
+from telefringe.io.rig_json import bare_rig_json
+from telefringe.io.scan_json import write_scan
+from telefringe.simulate import scenes
+from telefringe.simulate.presets import crop_camera, get_preset
 
 OPTS = {"measure": "sphere", "gamma_correction": False}
 
