@@ -56,6 +56,7 @@ def _flags_show_no_type() -> None:
 
 def _register_all():
     from telefringe.cli import (
+        accept,
         calibrate,
         capture,
         decode,
@@ -66,9 +67,12 @@ def _register_all():
         reconstruct,
         simulate,
     )
+    from telefringe.cli import rig as rig_cli
 
-    for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo):
+    for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo,
+                accept):
         mod.register(app)
+    rig_cli.register(app)
     capture.register(app)
     # one-line summaries in `telefringe --help`: the first paragraph of each docstring,
     # its hard line breaks joined
