@@ -299,3 +299,20 @@ def test_the_real_slmaster_calibration(tmp_path):
     assert cam.image_size == (1280, 1024) and imp.unused == ()
     # the projector sits about 11 cm to the camera's right
     assert 100 < proj.centre_world[0] < 115
+
+
+@pytest.mark.skipif(not REAL.is_file(), reason="../shared/realdata is not present")
+def test_the_help_example_runs_as_written(tmp_path, monkeypatch):
+    """`telefringe rig import-opencv --help`'s example, run from the repository (its output
+    sent to a temporary folder), then export-opencv's."""
+    import shlex
+
+    from telefringe.cli.rig import _IMPORT_EXAMPLE
+
+    args = shlex.split(_IMPORT_EXAMPLE)
+    assert args[:3] == ["telefringe", "rig", "import-opencv"] and args[-2] == "-o"
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    out = tmp_path / args[-1]
+    assert main([*args[1:-1], str(out)]) == 0
+    assert load_rig(out).projector.image_size == (1920, 1080)
+    assert main(["rig", "export-opencv", str(out), "-o", str(tmp_path / "relief_cal.yml")]) == 0
