@@ -316,3 +316,28 @@ def test_the_help_example_runs_as_written(tmp_path, monkeypatch):
     assert main([*args[1:-1], str(out)]) == 0
     assert load_rig(out).projector.image_size == (1920, 1080)
     assert main(["rig", "export-opencv", str(out), "-o", str(tmp_path / "relief_cal.yml")]) == 0
+
+
+def test_world_frame_toward_the_camera(tmp_path):
+    """--world toward-camera: the same rig turned 180 deg about the camera's x axis, so
+    that z (heights) points toward the camera; projections unchanged, export unchanged."""
+    f = write_fs(tmp_path / "cal.yml", slmaster_nodes())
+    cam_frame = read_opencv_rig(f, projector_size="1920x1080").rig
+    imp = read_opencv_rig(f, projector_size="1920x1080", world="toward-camera")
+    np.testing.assert_array_equal(imp.rig.camera.R_dev_world, np.diag([1.0, -1.0, -1.0]))
+    assert "toward the camera" in imp.world_definition
+    X = np.array([[10.0, -20.0, 700.0], [-50.0, 40.0, 760.0]])  # camera frame, mm
+    Xw = X * [1.0, -1.0, -1.0]
+    assert np.all(Xw[:, 2] < 0)  # in front of the camera = negative z: heights grow toward it
+    for a, b in ((cam_frame.camera, imp.rig.camera), (cam_frame.projector, imp.rig.projector)):
+        np.testing.assert_allclose(np.stack(b.project(Xw)), np.stack(a.project(X)), atol=1e-9)
+    assert opencv_rig_text(imp.rig) == opencv_rig_text(cam_frame)
+    with pytest.raises(InputError, match="world must be one of"):
+        read_opencv_rig(f, projector_size="1920x1080", world="up")
+    out = tmp_path / "rig.json"
+    assert main(["rig", "import-opencv", str(f), "--projector-size", "1920x1080", "--world",
+                 "toward-camera", "-o", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert "toward the camera" in doc["world_frame"]["definition"]
+    np.testing.assert_allclose(load_rig(out).camera.R_dev_world, np.diag([1.0, -1.0, -1.0]),
+                               atol=1e-15)
