@@ -341,3 +341,27 @@ def test_world_frame_toward_the_camera(tmp_path):
     assert "toward the camera" in doc["world_frame"]["definition"]
     np.testing.assert_allclose(load_rig(out).camera.R_dev_world, np.diag([1.0, -1.0, -1.0]),
                                atol=1e-15)
+
+
+@settings(max_examples=80, deadline=None)
+@given(data=st.data())
+def test_any_corrupted_node_is_refused_cleanly(data, tmp_path_factory):
+    """Replace any node by a matrix of any small shape and hostile values: the reader
+    returns a rig of valid devices or raises InputError, nothing else."""
+    nodes = slmaster_nodes(M2=K(1760.0, 1758.0), D2=D5, R=np.eye(3), T=[[-90.0], [0], [0]])
+    key = data.draw(st.sampled_from(sorted(nodes)))
+    shape = (data.draw(st.integers(1, 4)), data.draw(st.integers(1, 4)))
+    values = data.draw(st.lists(st.sampled_from([0.0, 1.0, -1.0, 1e-300, 1e300, np.nan,
+                                                 np.inf, 1280.0, 0.5]),
+                                min_size=shape[0] * shape[1], max_size=shape[0] * shape[1]))
+    nodes[key] = np.array(values).reshape(shape)
+    f = write_fs(tmp_path_factory.mktemp("fz") / "cal.yml", nodes)
+    try:
+        rig = read_opencv_rig(f, projector_size="1920x1080").rig
+    except InputError as exc:
+        assert "\n" not in str(exc)
+        return
+    for dev in [*rig.cameras.values(), rig.projector]:
+        k = dev.intrinsics
+        assert k.fx > 0 and k.fy > 0 and np.all(np.isfinite(dev.t_dev))
+        np.testing.assert_allclose(dev.R_dev_world @ dev.R_dev_world.T, np.eye(3), atol=1e-9)
