@@ -11,7 +11,12 @@ __all__ = ["CalibrationSetManifest"]
 
 @dataclass(frozen=True)
 class CalibrationSetManifest:
-    """Content of ``calibration.json``: the target, pixel sizes and pose scan folders."""
+    """Content of ``calibration.json``: the target, pixel sizes and pose scan folders.
+
+    ``projector_side`` ("left", "right", "top", "bottom" or None): where the projector is,
+    seen in the camera image (shadows fall away from it); settles the mirror ambiguity of
+    a rig of two telecentric devices calibrated from a flat target.
+    """
 
     target: CircleGridTarget
     camera_pixel_size: tuple[float, float]
@@ -19,3 +24,4 @@ class CalibrationSetManifest:
     poses: tuple[str, ...]
     reference_pose: str
     folder: str = ""
+    projector_side: str | None = None

@@ -56,6 +56,7 @@ def _flags_show_no_type() -> None:
 
 def _register_all():
     from telefringe.cli import (
+        accept,
         calibrate,
         decode,
         demo,
@@ -67,7 +68,8 @@ def _register_all():
     )
     from telefringe.cli import rig as rig_cli
 
-    for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo):
+    for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo,
+                accept):
         mod.register(app)
     rig_cli.register(app)
     # one-line summaries in `telefringe --help`: the first paragraph of each docstring,

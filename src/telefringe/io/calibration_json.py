@@ -30,7 +30,9 @@ __all__ = ["CALIB_FORMAT", "parse_calibration_manifest", "load_calibration_set",
 CALIB_FORMAT = "telefringe-calibration-set"
 
 _CAL_KEYS = {"format", "version", "target", "camera", "projector", "poses", "reference_pose",
-             "meta"}
+             "meta", "projector_side"}
+#: Values of the optional ``projector_side`` (where the projector is in the camera image).
+_SIDES = ("left", "right", "top", "bottom")
 _TARGET_KEYS = {"type", "rows", "cols", "pitch_mm", "diameter_mm", "circles"}
 
 
@@ -110,13 +112,18 @@ def parse_calibration_manifest(doc, *, folder: Path | None = None,
             probs.add(f"'reference_pose' {_r(ref)} is not one of 'poses'")
     else:
         ref = poses[0] if poses else None
+    side = doc.get("projector_side")
+    if side is not None and side not in _SIDES:
+        probs.add(f"'projector_side' must be one of {', '.join(_SIDES)} (where the projector "
+                  f"is, seen in the camera image), got {_r(side)}")
     probs.raise_if_any()
     target = CircleGridTarget(int(t["rows"]), int(t["cols"]), float(t["pitch_mm"]),
                               float(t["diameter_mm"]), t.get("circles", "dark-on-light"))
     return CalibrationSetManifest(target=target, camera_pixel_size=sizes["camera"],
                                   projector_pixel_size=sizes["projector"],
                                   poses=tuple(poses), reference_pose=ref,
-                                  folder=str(folder) if folder is not None else "")
+                                  folder=str(folder) if folder is not None else "",
+                                  projector_side=side)
 
 
 def load_calibration_set(folder) -> CalibrationSetManifest:
@@ -155,4 +162,6 @@ def write_calibration_manifest(folder, man: CalibrationSetManifest) -> None:
            "camera": {"pixel_size_mm": [float(x) for x in man.camera_pixel_size]},
            "projector": {"pixel_size_mm": [float(x) for x in man.projector_pixel_size]},
            "poses": list(man.poses), "reference_pose": man.reference_pose}
+    if man.projector_side is not None:
+        doc["projector_side"] = man.projector_side
     write_json_atomic(Path(folder) / "calibration.json", doc, force=True)

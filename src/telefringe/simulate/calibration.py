@@ -24,7 +24,8 @@ from telefringe.simulate.render import Truth, default_groups, render_scan
 from telefringe.simulate.scenes import CirclePlate, plate_from_target
 
 __all__ = ["CalibrationPose", "simulate_calibration_poses", "mirror_pose",
-           "render_calibration_set", "iter_calibration_set", "calibration_manifest"]
+           "render_calibration_set", "iter_calibration_set", "calibration_manifest",
+           "projector_side"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,14 +174,31 @@ def simulate_calibration_poses(vrig: VirtualRig, *, n_poses: int = 12, seed: int
                  for i, p in enumerate(poses))
 
 
+def projector_side(rig) -> str:
+    """Where the projector of ``rig`` (a Rig or VirtualRig) is, seen in the camera image:
+    "left", "right", "top" or "bottom" (what ``projector_side`` of calibration.json says;
+    shadows fall away from that side).
+
+    The projector's viewing axis, expressed in the camera's frame, points away from the
+    projector; its component across the camera image is largest along one image axis.
+    """
+    rig = getattr(rig, "rig", rig)
+    a = (rig.projector.R_dev_world @ rig.camera.R_dev_world.T)[2, :2]
+    sides = {"left": (-1.0, 0.0), "right": (1.0, 0.0), "top": (0.0, -1.0),
+             "bottom": (0.0, 1.0)}
+    return min(sides, key=lambda s: float(a @ np.array(sides[s])))
+
+
 def calibration_manifest(vrig: VirtualRig, poses) -> CalibrationSetManifest:
-    """The calibration-set manifest of a virtual rig's poses (reference = first)."""
+    """The calibration-set manifest of a virtual rig's poses (reference = first), with
+    the side of its projector (:func:`projector_side`), as a user would note it."""
     cam, proj = vrig.camera.intrinsics, vrig.projector.intrinsics
     names = tuple(p.name for p in poses)
     return CalibrationSetManifest(target=vrig.target,
                                   camera_pixel_size=(float(cam.du), float(cam.dv)),
                                   projector_pixel_size=(float(proj.du), float(proj.dv)),
-                                  poses=names, reference_pose=names[0])
+                                  poses=names, reference_pose=names[0],
+                                  projector_side=projector_side(vrig))
 
 
 def _pose_seed(seed: int, k: int) -> int:
