@@ -58,6 +58,7 @@ def _register_all():
     from telefringe.cli import (
         accept,
         calibrate,
+        capture,
         decode,
         demo,
         measure,
@@ -72,6 +73,7 @@ def _register_all():
                 accept):
         mod.register(app)
     rig_cli.register(app)
+    capture.register(app)
     # one-line summaries in `telefringe --help`: the first paragraph of each docstring,
     # its hard line breaks joined
     for cmd in app.registered_commands:
