@@ -138,6 +138,8 @@ def test_distortion_lengths(tmp_path, D, ok):
     ({"M4": None, "D4": None, "Rlp": None, "Tlp": None}, {}, "holds one camera"),
     ({"Rlp": R_LP * 1.01}, {}, "Rlp is not a rotation"),
     ({"Rlp": R_LP @ np.diag([1.0, 1.0, -1.0])}, {}, "Rlp is not a rotation.*reflection"),
+    ({"Rlp": np.diag([1.0, 1.0, 1e300])}, {}, "Rlp is not a rotation"),
+    ({"Rlp": [[0.0, 0.0, 1e300]]}, {}, "Rlp is not a rotation vector"),
     ({"Tlp": [[1.0, 2.0]]}, {}, "Tlp must be a translation"),
     ({"M4": K()[:2]}, {}, "M4 must be a 3 x 3"),
     ({"M1": K() + np.array([[0, 3.0, 0], [0, 0, 0], [0, 0, 0]])}, {}, "skew"),

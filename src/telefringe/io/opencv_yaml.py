@@ -208,10 +208,15 @@ class _Check:
     def rotation(self, key) -> np.ndarray:
         R = self.finite(key)
         if R.size == 3:
+            if np.max(np.abs(R)) > 1e3:
+                self.fail(key, f"is not a rotation vector (an angle of {np.max(np.abs(R)):.3g} "
+                               "rad)")
             return rotation_from_rotvec(R.reshape(3))
         if R.shape != (3, 3):
             self.fail(key, "must be a 3 x 3 rotation matrix or a rotation vector of 3, got "
                            f"a {' x '.join(map(str, R.shape))} matrix")
+        if np.max(np.abs(R)) > 1.0 + _ROTATION_TOL:
+            self.fail(key, f"is not a rotation: it holds {np.max(np.abs(R)):.3g}, beyond 1")
         err = float(np.max(np.abs(R @ R.T - np.eye(3))))
         if err > _ROTATION_TOL or np.linalg.det(R) <= 0:
             what = (f"R R^T differs from I by {err:.2g}" if err > _ROTATION_TOL else
@@ -224,7 +229,11 @@ class _Check:
         if T.size != 3 or (T.ndim == 2 and 1 not in T.shape):
             self.fail(key, f"must be a translation of 3 values, got a "
                            f"{' x '.join(map(str, T.shape))} matrix")
-        return T.reshape(3) * scale
+        with np.errstate(over="ignore"):
+            T = T.reshape(3) * scale
+        if not np.all(np.isfinite(T)):
+            self.fail(key, "is too large for a translation")
+        return T
 
     def size(self, key) -> tuple[int, int]:
         S = self.finite(key).reshape(-1)
