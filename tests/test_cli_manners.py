@@ -149,7 +149,7 @@ _CMDS = _commands()
 _DOCUMENTED = [["decode"], ["patterns"], ["calibrate"], ["reconstruct"], ["paper"], ["demo"],
                ["simulate", "calibration"], ["simulate", "scan"], ["measure", "plate"],
                ["measure", "sphere"], ["measure", "bga"], ["measure", "steps"],
-               ["accept"], ["simulate", "acceptance"]]
+               ["accept"], ["simulate", "acceptance"], ["batch"]]
 
 
 def test_every_documented_command_is_registered():
