@@ -19,7 +19,11 @@ import numpy as np
 from telefringe.calibration.rig import calibrate_rig
 from telefringe.fringes.decode import decode
 from telefringe.fringes.images import fringe_free_image
-from telefringe.simulate.calibration import iter_calibration_set, simulate_calibration_poses
+from telefringe.simulate.calibration import (
+    iter_calibration_set,
+    projector_side,
+    simulate_calibration_poses,
+)
 from telefringe.simulate.presets import get_preset
 from telefringe.targets.circle_grid import detect_circle_grid
 from telefringe.targets.observations import projector_observations
@@ -77,7 +81,8 @@ def main() -> None:
                         camera_size=(k.camera.intrinsics.width, k.camera.intrinsics.height),
                         projector_size=(k.projector.intrinsics.width,
                                         k.projector.intrinsics.height),
-                        pose_names=names, grid_shape=(T.rows, T.cols))
+                        pose_names=names, grid_shape=(T.rows, T.cols),
+                        projector_side=projector_side(vrig))
     t_adj = time.perf_counter() - t0
     ec = np.concatenate([c_ - f["circle_centres_px"] for c_, f in zip(cam, feats, strict=True)])
     ep = np.concatenate([p_ - f["circle_centres_proj_px"] for p_, f in zip(proj, feats,

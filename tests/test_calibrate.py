@@ -17,7 +17,11 @@ from telefringe.calibration.errors import CalibrationError
 from telefringe.calibration.problem import BundleProblem
 from telefringe.calibration.rig import calibrate_rig
 from telefringe.calibration.solver import levenberg_marquardt
-from telefringe.calibration.start_telecentric import closed_form_device, mirror_pose
+from telefringe.calibration.start_telecentric import (
+    MirrorAmbiguityError,
+    closed_form_device,
+    mirror_pose,
+)
 from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
 from telefringe.geometry.so3 import left_jacobian, rotation_from_rotvec, skew
@@ -316,14 +320,11 @@ def test_mirror_ambiguity_resolved_by_the_projector_side(scene, calibrated):
     assert abs(other.rms_projector - calibrated.rms_projector) < 1e-6
     z = triangulate(other.rig, cam[0], proj[0])[:, 2]
     assert np.all(np.abs(z + 1.0) < 2e-3)
-    # no side given: the convention (the paper's rig satisfies it) and a warning
-    conv = calibrate_rig(scene["P"], scene["cam"], scene["proj"], camera_pixel_size=CAM_PIX,
-                         projector_pixel_size=PROJ_PIX, camera_size=CAM_SIZE,
-                         projector_size=PROJ_SIZE)
-    assert conv.mirror == "convention"
-    assert any("projector_side" in w for w in conv.warnings)
-    np.testing.assert_allclose(conv.rig.projector.R_dev_world,
-                               calibrated.rig.projector.R_dev_world, atol=1e-9)
+    # no side given: no guess (any convention is a coin toss on someone's rig)
+    with pytest.raises(MirrorAmbiguityError, match="shadow falls away from the projector"):
+        calibrate_rig(scene["P"], scene["cam"], scene["proj"], camera_pixel_size=CAM_PIX,
+                      projector_pixel_size=PROJ_PIX, camera_size=CAM_SIZE,
+                      projector_size=PROJ_SIZE)
 
 
 def test_outliers_are_rejected_and_reported(scene):
@@ -384,7 +385,8 @@ def test_degenerate_inputs_raise(scene):
     same_cam = np.repeat(scene["cam"][1:2], 6, axis=0)
     same_proj = np.repeat(scene["proj"][1:2], 6, axis=0)
     kw = dict(camera_pixel_size=CAM_PIX, projector_pixel_size=PROJ_PIX,
-              camera_size=CAM_SIZE, projector_size=PROJ_SIZE)
+              camera_size=CAM_SIZE, projector_size=PROJ_SIZE,
+              projector_side=side_of(scene["rig"]))
     with pytest.raises(CalibrationError, match="same tilt"):
         calibrate_rig(P, same_cam, same_proj, **kw)
     with pytest.raises(CalibrationError, match="at least 4"):
@@ -396,4 +398,4 @@ def test_degenerate_inputs_raise(scene):
     with pytest.raises(CalibrationError, match=r"\(n_poses, 99, 2\)"):
         calibrate_rig(P, scene["cam"][:, :50], scene["proj"], **kw)
     with pytest.raises(ValueError, match="projector_side"):
-        calibrate_rig(P, scene["cam"], scene["proj"], projector_side="up", **kw)
+        calibrate_rig(P, scene["cam"], scene["proj"], **{**kw, "projector_side": "up"})

@@ -41,7 +41,7 @@ def test_calibrate_writes_rig_and_report(calib_set, tmp_path, capsys):
     assert abs(calib.rig.camera.intrinsics.m / truth.camera.intrinsics.m - 1) < 6.5e-5
     assert calib.rms_camera < 0.014, calib.rms_camera
     assert calib.rms_projector < 0.0096, calib.rms_projector
-    assert calib.mirror == "projector_side=right"
+    assert calib.mirror == "projector_side=right (given by --projector-side)"
     assert sorted(p.name for p in report.iterdir()) == [
         "histogram_camera.png", "histogram_projector.png", "residuals_camera.png",
         "residuals_projector.png", "rms_per_pose.png"]
@@ -52,13 +52,54 @@ def test_calibrate_writes_rig_and_report(calib_set, tmp_path, capsys):
     assert main(argv) == 2
     assert "already exists" in capsys.readouterr().err
     assert rig_path.read_bytes() == before
-    # the mirror: the opposite side gives heights of opposite sign (same images)
+    # the mirror: the opposite side gives heights of opposite sign (same images); the
+    # simulated set notes the true side, which a contradicting option may not override
     mirror = tmp_path / "mirror.json"
-    assert main(["-q", "calibrate", str(calib_set), "-o", str(mirror), "--no-gamma",
-                 "--projector-side", "left"]) == 0
+    assert json.loads((calib_set / "calibration.json").read_text())["projector_side"] == "right"
+    argv = ["-q", "calibrate", str(calib_set), "-o", str(mirror), "--no-gamma",
+            "--projector-side", "left"]
+    assert main(argv) == 2
+    assert "contradicts" in capsys.readouterr().err and not mirror.exists()
+    unnoted = _copy_without_side(calib_set, tmp_path / "unnoted")
+    argv[2] = str(unnoted)
+    assert main(argv) == 0
     m = load_rig(mirror)
     up = [r.projector.R_dev_world @ r.camera.R_dev_world.T for r in (calib.rig, m.rig)]
     assert np.sign(up[0][0, 2]) == -np.sign(up[1][0, 2])
+
+
+def _copy_without_side(calib_set, dest):
+    """The calibration set copied to ``dest`` with no ``projector_side`` noted."""
+    shutil.copytree(calib_set, dest)
+    doc = json.loads((dest / "calibration.json").read_text())
+    del doc["projector_side"]
+    (dest / "calibration.json").write_text(json.dumps(doc))
+    return dest
+
+
+def test_a_telecentric_pair_without_the_projector_side_stops(calib_set, tmp_path, capsys):
+    """No side in calibration.json nor on the command line: exit 2 before any work, one
+    line saying how to find the side and how to give it, nothing written."""
+    unnoted = _copy_without_side(calib_set, tmp_path / "unnoted")
+    out = tmp_path / "rig.json"
+    report = tmp_path / "report"
+    assert main(["calibrate", str(unnoted), "-o", str(out), "--report", str(report)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert "shadow" in err and "falls away from the projector" in err
+    assert "--projector-side left|right|top|bottom" in err and '"projector_side"' in err
+    assert not out.exists() and not report.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["unnoted"]
+
+
+def test_the_side_noted_in_calibration_json_is_used_and_recorded(calib_set, tmp_path):
+    out = tmp_path / "rig.json"
+    assert main(["-q", "calibrate", str(calib_set), "-o", str(out), "--no-gamma"]) == 0
+    calib = load_rig(out)
+    assert calib.mirror == "projector_side=right (from calibration.json)"
+    doc = json.loads(out.read_text())
+    assert doc["calibration"]["mirror"] == "projector_side=right (from calibration.json)"
+    assert not calib.warnings or not any("convention" in w for w in calib.warnings)
 
 
 def test_too_few_poses_is_one_clear_line(calib_set, tmp_path, capsys):

@@ -24,7 +24,11 @@ from telefringe.calibration.start_telecentric import mirror_pose
 from telefringe.fringes.decode import decode
 from telefringe.fringes.images import fringe_free_image
 from telefringe.geometry.so3 import rotation_from_rotvec
-from telefringe.simulate.calibration import iter_calibration_set, simulate_calibration_poses
+from telefringe.simulate.calibration import (
+    iter_calibration_set,
+    projector_side,
+    simulate_calibration_poses,
+)
 from telefringe.simulate.presets import get_preset
 from telefringe.simulate.render import default_groups, render_scan
 from telefringe.simulate.scenes import plate_from_target
@@ -53,7 +57,7 @@ def run():
     k = vrig.rig
     cal = calibrate_from_scans(scans(), vrig.target, (k.camera.intrinsics.du,) * 2,
                                (k.projector.intrinsics.du,) * 2, "pose_00",
-                               decode_options=DECODE)
+                               projector_side=projector_side(vrig), decode_options=DECODE)
     # held-out plate: a new pose, raised, tilted and turned
     T = vrig.target
     c_t = np.array([(T.cols - 1) * T.pitch_mm / 2, (T.rows - 1) * T.pitch_mm / 2, 0.0])

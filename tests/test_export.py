@@ -185,8 +185,14 @@ def test_write_reconstruction(tmp_path):
                  "heightmap.png", "heightmap_sigma.tif", "summary.json"):
         assert (tmp_path / name).exists(), name
     assert set(out) == {"points", "ply", "heightmap", "heightmap_json", "heightmap_png",
-                        "summary"}
+                        "heightmap_x3p", "summary"}
     assert json.loads(out["summary"].read_text()) == {"valid": cloud.count, "s": None}
+    # the X3P beside the TIFF holds the same heights, bit for bit (tests/test_x3p.py)
+    from telefringe.io.tiff import read_height_tiff
+    from telefringe.io.x3p import read_height_x3p
+
+    assert np.array_equal(read_height_x3p(out["heightmap_x3p"]).z,
+                          read_height_tiff(out["heightmap"]).z, equal_nan=True)
     with pytest.raises(InputError, match="already exists"):  # nothing replaced unforced
         write_reconstruction(tmp_path, cloud, height_map(cloud))
     with pytest.raises(InputError):

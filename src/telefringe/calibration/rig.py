@@ -105,8 +105,8 @@ class RigCalibration:
         the observations given (NaN where missing).
     principal_point : str, "estimate" or "fixed"; principal_point_weak : (bool, bool)
         for (camera, projector).
-    mirror : str, how the global mirror ambiguity was resolved ("projector_side=..."
-        or "convention").
+    mirror : str, how the global mirror ambiguity was resolved ("projector_side=...",
+        to which ``telefringe calibrate`` adds where the side came from).
     warnings : tuple of str, things a person should read (skipped poses, conventions).
     camera_alone, projector_alone : DeviceCalibration or None, the single-device
         calibrations that started the joint adjustment (not stored in rig.json).
@@ -201,7 +201,8 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
     projector_side : {"left", "right", "top", "bottom"} or None
         Where the projector is, as seen in the camera image (the side the light comes
         from; shadows fall away from it). Resolves the global mirror ambiguity of a flat
-        target (see the module notes); None uses the convention and adds a warning.
+        target (see the module notes). For two telecentric devices it is required: None
+        raises :class:`~telefringe.calibration.start_telecentric.MirrorAmbiguityError`.
     principal_point, principal_point_sigma : see :func:`calibrate_device`.
     outlier_threshold, max_rounds : outlier rejection (robust sigmas, rounds).
     min_poses : int, fewest poses seen by both devices.

@@ -14,10 +14,8 @@ What makes telecentric calibration different
   pose ``R -> D R D`` for both devices) leaves *every* image of a flat target unchanged.
   The two solutions differ in the side the projector lights from and give heights of
   opposite sign. ``projector_side`` (where the projector is, seen in the camera image)
-  chooses (:func:`mirror_needed`); without it a convention is used: the solution in which
-  the projector coordinate most sensitive to depth (u_p or v_p) *increases with depth
-  along the camera axis* (decreases as a surface rises toward the camera), as in the
-  paper's rig.
+  chooses (:func:`mirror_needed`). Without it the calibration stops
+  (:class:`MirrorAmbiguityError`): any convention would be a coin toss on someone's rig.
 """
 
 from __future__ import annotations
@@ -32,6 +30,8 @@ from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
 from telefringe.geometry.so3 import chordal_mean, project_to_rotation
 
 __all__ = [
+    "MIRROR_HELP",
+    "MirrorAmbiguityError",
     "PROJECTOR_SIDES",
     "branches_against",
     "DeviceStart",
@@ -47,6 +47,18 @@ __all__ = [
 PROJECTOR_SIDES = {"left": (-1.0, 0.0), "right": (1.0, 0.0), "top": (0.0, -1.0),
                    "bottom": (0.0, 1.0)}
 _D = np.diag([1.0, 1.0, -1.0])
+
+#: What to do when the side of the projector is not known (one line).
+MIRROR_HELP = (
+    "the side of the projector is needed: a flat target cannot tell this telecentric rig "
+    "from its mirror image (heights of opposite sign). Stand an upright pin on the plate: "
+    "its shadow falls away from the projector. Give the side where the projector is, seen "
+    "in the camera image, as --projector-side left|right|top|bottom or as \"projector_side\" "
+    "in calibration.json")
+
+
+class MirrorAmbiguityError(CalibrationError):
+    """A telecentric pair calibrated from a flat target without the projector's side."""
 
 
 def mirror_pose(R: np.ndarray) -> np.ndarray:
@@ -217,21 +229,19 @@ def choose_branches(R_ct, R_pt):
     return R_ct2, R_pt2
 
 
-def mirror_needed(R_pc: np.ndarray, projector_side: str | None) -> bool:
-    """Whether the global mirror must be applied to meet the hint or the convention."""
-    if projector_side is not None:
-        s = np.array(PROJECTOR_SIDES[projector_side])
-        # projector viewing direction in camera image axes; the projector sits opposite
-        a = R_pc[2, :2]
-        dot = float(a @ s)
-        if abs(dot) < 0.02:
-            raise CalibrationError(
-                f"projector_side={projector_side!r}: the projector's axis is not tilted "
-                "toward that side of the camera image (it is tilted along the other image "
-                "axis); give the side along which it is tilted")
-        return dot > 0
-    j = 0 if abs(R_pc[0, 2]) >= abs(R_pc[1, 2]) else 1
-    return R_pc[j, 2] < 0
+def mirror_needed(R_pc: np.ndarray, projector_side: str) -> bool:
+    """Whether the global mirror must be applied to put the projector on ``projector_side``
+    of the camera image ("left", "right", "top" or "bottom")."""
+    s = np.array(PROJECTOR_SIDES[projector_side])
+    # projector viewing direction in camera image axes; the projector sits opposite
+    a = R_pc[2, :2]
+    dot = float(a @ s)
+    if abs(dot) < 0.02:
+        raise CalibrationError(
+            f"projector_side={projector_side!r}: the projector's axis is not tilted "
+            "toward that side of the camera image (it is tilted along the other image "
+            "axis); give the side along which it is tilted")
+    return dot > 0
 
 
 def resolve_rotations(R_cam_target, R_proj_target, projector_side: str | None):
@@ -241,30 +251,28 @@ def resolve_rotations(R_cam_target, R_proj_target, projector_side: str | None):
     ----------
     R_cam_target, R_proj_target : (n, 3, 3) target -> device rotations of the same poses
         (the reference pose first), each on an arbitrary mirror branch.
-    projector_side : where the projector is in the camera image, or None (convention).
+    projector_side : where the projector is in the camera image ("left", "right", "top",
+        "bottom"); None raises :class:`MirrorAmbiguityError`.
 
     Returns
     -------
     R_cam_target, R_proj_target : (n, 3, 3), on one rigid, globally chosen branch.
     R_proj_cam : (3, 3), their mean relative rotation.
-    mirror : str, how the global ambiguity was resolved ("projector_side=..." or
-        "convention").
+    mirror : str, how the global ambiguity was resolved ("projector_side=...").
     warnings : list of str.
+
+    Raises
+    ------
+    MirrorAmbiguityError
+        Without ``projector_side``: the images cannot decide.
     """
     R_ct, R_pt = choose_branches(np.asarray(R_cam_target), np.asarray(R_proj_target))
     R_pc = chordal_mean(R_pt @ np.transpose(R_ct, (0, 2, 1)))
+    if projector_side is None:
+        raise MirrorAmbiguityError(MIRROR_HELP)
     if mirror_needed(R_pc, projector_side):
         R_ct, R_pt, R_pc = mirror_pose(R_ct), mirror_pose(R_pt), mirror_pose(R_pc)
-    warns = []
-    if projector_side is None:
-        mirror = "convention"
-        warns.append("projector_side not given: the mirror ambiguity of a flat target was "
-                     "resolved by convention (the projector coordinate most sensitive to depth "
-                     "decreases as a surface rises toward the camera); if heights come out "
-                     "inverted, calibrate again with the projector's side")
-    else:
-        mirror = f"projector_side={projector_side}"
-    return R_ct, R_pt, R_pc, mirror, warns
+    return R_ct, R_pt, R_pc, f"projector_side={projector_side}", []
 
 
 def branches_against(R_anchor, R_dev):

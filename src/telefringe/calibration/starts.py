@@ -61,9 +61,10 @@ def joint_rotations(models, R_dev_target, projector_side: str | None = None, *,
     R_dev_target : sequence of (n, 3, 3) target -> device rotations of the same poses
         (the reference pose first), one per device.
     projector_side : where the projector is in the reference camera's image, or None.
-        Used only when every device is telecentric (then the whole rig and its mirror
-        image explain a flat target equally well); a pinhole device sees depth and
-        settles the mirror by itself, so no side is asked for.
+        Needed only when every device is telecentric (then the whole rig and its mirror
+        image explain a flat target equally well: without it
+        :class:`~telefringe.calibration.start_telecentric.MirrorAmbiguityError`); a
+        pinhole device sees depth and settles the mirror by itself.
     projector_index : int or None, which device is the projector (for the side).
 
     Returns
@@ -71,8 +72,7 @@ def joint_rotations(models, R_dev_target, projector_side: str | None = None, *,
     R_dev_target : list of (n, 3, 3), on one rigid branch.
     relative : list of (3, 3), each device's mean rotation from device 0's frame.
     mirror : str, how the mirror ambiguity was settled ("projector_side=...",
-        "convention", or "pinhole device" when a pinhole device fixed it, "none"
-        when no device has one).
+        "pinhole device" when a pinhole device fixed it, "none" when no device has one).
     warnings : list of str.
     """
     Rs = [np.asarray(R, dtype=float) for R in R_dev_target]
@@ -101,19 +101,18 @@ def joint_rotations(models, R_dev_target, projector_side: str | None = None, *,
             if mirrored[d] and d != anchor:
                 Rs[d] = start_telecentric.branches_against(Rs[anchor], Rs[d])
         if not anchors:
-            k = 1 if projector_index is None else int(projector_index)
-            side = projector_side if projector_index is not None else None
+            if projector_index is None:
+                raise start_telecentric.MirrorAmbiguityError(
+                    "telecentric cameras calibrated from a flat target without a projector "
+                    "cannot tell the rig from its mirror image (heights of opposite sign): "
+                    "calibrate the projector with them (\"projector\" in calibration.json) "
+                    "and give its side, or include a pinhole device")
+            if projector_side is None:
+                raise start_telecentric.MirrorAmbiguityError(start_telecentric.MIRROR_HELP)
+            k = int(projector_index)
             R_kc = chordal_mean(Rs[k] @ np.transpose(Rs[0], (0, 2, 1)))
-            if start_telecentric.mirror_needed(R_kc, side):
+            if start_telecentric.mirror_needed(R_kc, projector_side):
                 Rs = [start_telecentric.mirror_pose(R) for R in Rs]
-            if side is None:
-                mirror = "convention"
-                warns.append("projector_side not given: the mirror ambiguity of a flat "
-                             "target was resolved by convention (the projector coordinate "
-                             "most sensitive to depth decreases as a surface rises toward "
-                             "the camera); if heights come out inverted, calibrate again "
-                             "with the projector's side")
-            else:
-                mirror = f"projector_side={side}"
+            mirror = f"projector_side={projector_side}"
     rel = [chordal_mean(R @ np.transpose(Rs[0], (0, 2, 1))) for R in Rs]
     return Rs, rel, mirror, warns

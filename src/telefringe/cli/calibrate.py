@@ -107,6 +107,29 @@ def _pose_table(calib):
     return table
 
 
+def _projector_side(man, option, calib_dir):
+    """The projector's side (or None) and where it came from, from ``--projector-side``
+    and calibration.json's ``projector_side``. Stops (InputError: exit 2, nothing
+    written) when they disagree, or when neither gives it for a rig of two telecentric
+    devices, which a flat target cannot tell from its mirror image."""
+    from telefringe.calibration.start_telecentric import MIRROR_HELP
+    from telefringe.io.errors import InputError
+
+    given = None if option is None else option.value
+    noted = getattr(man, "projector_side", None)
+    if given is not None and noted is not None and given != noted:
+        raise InputError(f"--projector-side {given} contradicts \"projector_side\": "
+                         f"\"{noted}\" in {calib_dir}/calibration.json: check which is right")
+    if given is not None:
+        return given, "given by --projector-side"
+    if noted is not None:
+        return noted, "from calibration.json"
+    models = set(getattr(man, "models", {"camera": "telecentric"}).values())
+    if models == {"telecentric"}:
+        raise InputError(f"{calib_dir}: {MIRROR_HELP}")
+    return None, ""
+
+
 def calibrate_cmd(
     calib_dir: Path = typer.Argument(..., help="Calibration set folder (with calibration.json)."),
     output: Path = typer.Option(..., "-o", "--output", help="rig.json to write."),
@@ -114,11 +137,11 @@ def calibrate_cmd(
                                        help="Folder to create with residual plots (PNG)."),
     projector_side: _Side | None = typer.Option(
         None, "--projector-side",
-        help="Where the projector is, seen in the camera image (shadows fall away from it). "
-             "A telecentric camera and projector calibrated from a flat target cannot tell "
-             "the rig from its mirror image (heights of opposite sign); without this option "
-             "(or 'projector_side' in calibration.json) a convention decides and a warning "
-             "says so. A rig with a pinhole device needs no side."),
+        help="Where the projector is, seen in the camera image (the shadow of an upright "
+             "pin falls away from it). A rig of two telecentric devices calibrated from a "
+             "flat target cannot tell itself from its mirror image (heights of opposite "
+             "sign): it needs this, or \"projector_side\" in calibration.json. A rig with a "
+             "pinhole device needs no side."),
     principal_point: _PP = typer.Option(
         _PP.estimate, "--principal-point",
         help="estimate: free with a weak prior at the image centre; fixed: at the centre."),
@@ -152,9 +175,9 @@ def calibrate_cmd(
     if report is not None:
         check_can_write(report, force=force)
     man = load_calibration_set(calib_dir)
+    side, mirror_source = _projector_side(man, projector_side, calib_dir)
     detail(f"{len(man.poses)} poses, target {man.target.rows} x {man.target.cols} at "
            f"{man.target.pitch_mm} mm, reference {man.reference_pose}")
-    side = man.projector_side if projector_side is None else projector_side.value
     with progress_bar("calibration poses", len(man.poses)) as advance:
         def scans():
             for name in man.poses:
@@ -174,6 +197,11 @@ def calibrate_cmd(
                 pixel_sizes=man.pixel_sizes)
         except CalibrationError as exc:
             raise InputError(f"{calib_dir}: {exc}") from None
+    if side is not None and calib.mirror == f"projector_side={side}":
+        # rig.json records where the side came from (calibration.mirror)
+        from dataclasses import replace
+
+        calib = replace(calib, mirror=f"projector_side={side} ({mirror_source})")
     for w in calib.warnings:
         info(f"[yellow]warning:[/yellow] {w}")
     if not state.quiet:

@@ -111,9 +111,6 @@ def parse_calibration_manifest(doc, *, folder: Path | None = None,
                       f"{_r(ps)}{need}")
         else:
             sizes[dev] = (float(ps[0]), float(ps[1]))
-    side = doc.get("projector_side")
-    if side is not None and side not in _SIDES:
-        probs.add(f"'projector_side' must be one of {', '.join(_SIDES)}, got {_r(side)}")
     cameras = ("camera", "camera_2") if two else ("camera",)
     poses = doc.get("poses")
     if not isinstance(poses, list) or not poses:
@@ -147,6 +144,10 @@ def parse_calibration_manifest(doc, *, folder: Path | None = None,
             probs.add(f"'reference_pose' {_r(ref)} is not one of 'poses'")
     else:
         ref = poses[0] if poses else None
+    side = doc.get("projector_side")
+    if side is not None and side not in _SIDES:
+        probs.add(f"'projector_side' must be one of {', '.join(_SIDES)} (where the projector "
+                  f"is, seen in the camera image), got {_r(side)}")
     probs.raise_if_any()
     target = CircleGridTarget(int(t["rows"]), int(t["cols"]), float(t["pitch_mm"]),
                               float(t["diameter_mm"]), t.get("circles", "dark-on-light"))

@@ -1,5 +1,6 @@
 """The folder a reconstruction leaves: ``points.npz``, ``cloud.ply``, ``heightmap.tif`` (+
-``.json``, ``_sigma.tif``), ``heightmap.png`` and ``summary.json``."""
+``.json``, ``_sigma.tif``), ``heightmap.x3p`` (ISO 25178-72), ``heightmap.png`` and
+``summary.json``."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from telefringe.io.jsonable import write_json
 from telefringe.io.ply import write_ply
 from telefringe.io.points_npz import write_points
 from telefringe.io.tiff import write_height_tiff
+from telefringe.io.x3p import write_height_x3p
 
 __all__ = ["write_reconstruction", "preview_map", "PREVIEW_PIXELS"]
 
@@ -30,6 +32,7 @@ def write_reconstruction(folder, cloud, hm=None, *, texture=None, radiance=None,
                          title: str | None = None, ply: bool = True,
                          summary: dict | None = None, force: bool = False) -> dict:
     """Write ``points.npz``, ``cloud.ply``, ``heightmap.tif`` (+ ``.json``, ``_sigma.tif``),
+    ``heightmap.x3p`` (the same heights as ISO 25178-72 X3P, :mod:`telefringe.io.x3p`),
     ``heightmap.png`` (of :func:`preview_map`) and ``summary.json`` into an existing
     ``folder``.
 
@@ -71,6 +74,7 @@ def write_reconstruction(folder, cloud, hm=None, *, texture=None, radiance=None,
         if hm is not None:
             out["heightmap"], out["heightmap_json"] = write_height_tiff(
                 folder / "heightmap.tif", hm, force=force)
+            out["heightmap_x3p"] = write_height_x3p(folder / "heightmap.x3p", hm, force=force)
         if summary is not None:
             out["summary"] = write_json(folder / "summary.json", summary, force=force)
         if png is not None:

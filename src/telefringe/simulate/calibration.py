@@ -24,7 +24,8 @@ from telefringe.simulate.render import Truth, default_groups, image_radius_px, r
 from telefringe.simulate.scenes import CirclePlate, plate_from_target
 
 __all__ = ["CalibrationPose", "simulate_calibration_poses", "mirror_pose",
-           "render_calibration_set", "iter_calibration_set", "calibration_manifest"]
+           "render_calibration_set", "iter_calibration_set", "calibration_manifest",
+           "projector_side"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,19 +183,49 @@ def simulate_calibration_poses(vrig: VirtualRig, *, n_poses: int = 12, seed: int
                  for i, p in enumerate(poses))
 
 
+def projector_side(rig, camera: str | None = None) -> str:
+    """Where the projector of ``rig`` (a Rig or VirtualRig) is, seen in the image of
+    ``camera`` (default: the first): "left", "right", "top" or "bottom" (what
+    ``projector_side`` of calibration.json says; shadows fall away from that side).
+
+    The direction from the scene toward the projector (against a telecentric
+    projector's axis; toward a pinhole projector's centre from the point its axis meets
+    in front of the camera), expressed in the camera's frame, is largest along one image
+    axis.
+    """
+    rig = getattr(rig, "rig", rig)
+    cam = rig.cameras[camera or rig.camera_names[0]]
+    proj = rig.projector
+    if proj.model == "telecentric":
+        toward = -proj.R_dev_world[2]
+    else:
+        centre = proj.R_dev_world.T @ (-np.asarray(proj.t_dev, dtype=float))
+        toward = -proj.R_dev_world[2]
+        # the scene point on the projector's axis nearest the camera's axis
+        if cam.model != "telecentric":
+            c_cam = cam.R_dev_world.T @ (-np.asarray(cam.t_dev, dtype=float))
+            d_cam, d_proj = cam.R_dev_world[2], proj.R_dev_world[2]
+            A = np.array([[d_proj @ d_proj, -d_proj @ d_cam], [d_proj @ d_cam, -d_cam @ d_cam]])
+            b = np.array([(c_cam - centre) @ d_proj, (c_cam - centre) @ d_cam])
+            s = np.linalg.solve(A, b)[0]
+            toward = -s * d_proj
+    x, y, _ = cam.R_dev_world @ toward
+    if abs(x) >= abs(y):
+        return "right" if x > 0 else "left"
+    return "bottom" if y > 0 else "top"
+
+
 def calibration_manifest(vrig: VirtualRig, poses) -> CalibrationSetManifest:
-    """The calibration-set manifest of a virtual rig's poses (reference = first)."""
+    """The calibration-set manifest of a virtual rig's poses (reference = first): each
+    device's model (and pixel size where telecentric) and, for one camera, the side of
+    its projector (:func:`projector_side`), as a user would note it."""
     names = tuple(p.name for p in poses)
     devices = dict(vrig.rig.cameras)
     devices["projector"] = vrig.projector
     models = {k: d.model for k, d in devices.items()}
     sizes = {k: (float(d.intrinsics.du), float(d.intrinsics.dv)) for k, d in devices.items()
              if d.model == "telecentric"}
-    side = None
-    if len(vrig.rig.cameras) == 1 and set(models.values()) == {"telecentric"}:
-        from telefringe.simulate.presets import projector_side
-
-        side = projector_side(vrig)
+    side = projector_side(vrig) if len(vrig.rig.cameras) == 1 else None
     return CalibrationSetManifest(target=vrig.target,
                                   camera_pixel_size=sizes.get("camera"),
                                   projector_pixel_size=sizes.get("projector"),

@@ -227,7 +227,8 @@ def run_calibration(vrig: VirtualRig, *, n_poses: int, seed: int = 0,
 
     return calibrate_from_scans(scans(), man.target, man.camera_pixel_size,
                                 man.projector_pixel_size, man.reference_pose,
-                                projector_side="right", decode_options=decode_options)
+                                projector_side=man.projector_side,
+                                decode_options=decode_options)
 
 
 def run_plate(vrig: VirtualRig, rig: Rig, position: float, *, seed: int = 0) -> PlateRow:

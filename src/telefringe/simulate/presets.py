@@ -25,8 +25,8 @@
     with 4.8 um pixels behind a 25 mm lens (f/11) 200 mm from the plate, field 43 x 34 mm,
     depth of field about 12 mm (circle of confusion 2 pixels); a 1280 x 800 DLP panel
     (7.6 um mirrors) behind a 28 mm lens, 200 mm away on the other side (it lights about
-    60 x 37 mm): 25 deg between the axes, baseline about 87 mm. Distortion as in C-mount lenses of this class
-    (k1 = -0.15: about 2 px at the camera's corners).
+    60 x 37 mm): 25 deg between the axes, baseline about 87 mm. Distortion as in
+    C-mount lenses of this class (k1 = -0.15: about 2 px at the camera's corners).
 ``stereo``
     Two of the ``macro`` cameras at +-15 deg about a ``macro`` projector in the middle
     (30 deg between the cameras, baseline about 104 mm): the layout of most commercial
@@ -50,7 +50,7 @@ from telefringe.geometry.so3 import rotation_from_rotvec
 from telefringe.targets.grid import CircleGridTarget
 
 __all__ = ["Photometry", "VirtualRig", "get_preset", "crop_camera", "PRESETS", "PAPER_TARGET",
-           "HDR_EXPOSURES", "bin_camera_any", "projector_side"]
+           "HDR_EXPOSURES", "bin_camera_any"]
 
 #: The calibration plate of the paper: 9 x 11 dark circles, pitch 3 mm, diameter 1.5 mm.
 PAPER_TARGET = CircleGridTarget(rows=9, cols=11, pitch_mm=3.0, diameter_mm=1.5)
@@ -344,23 +344,6 @@ def _stereo() -> VirtualRig:
 
 PRESETS = {"paper": _paper, "fast": _fast, "mixed": _mixed, "macro": _macro,
            "stereo": _stereo}
-
-
-def projector_side(vrig: VirtualRig, camera: str | None = None) -> str:
-    """Where the projector is, seen in the image of ``camera`` (default: the first):
-    "left", "right", "top" or "bottom" (the image axis along which the direction from
-    the plate centre toward the projector leans most)."""
-    cam = vrig.rig.cameras[camera or vrig.rig.camera_names[0]]
-    proj = vrig.projector
-    centre = _plate_centre(vrig.target)
-    if proj.model == "telecentric":
-        toward = -proj.R_dev_world[2]
-    else:
-        toward = proj.R_dev_world.T @ (-np.asarray(proj.t_dev)) - centre
-    x, y, _ = cam.R_dev_world @ toward
-    if abs(x) >= abs(y):
-        return "right" if x > 0 else "left"
-    return "bottom" if y > 0 else "top"
 
 
 def bin_camera_any(vrig: VirtualRig, factor: int) -> VirtualRig:
