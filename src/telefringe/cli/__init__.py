@@ -65,9 +65,11 @@ def _register_all():
         reconstruct,
         simulate,
     )
+    from telefringe.cli import rig as rig_cli
 
     for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo):
         mod.register(app)
+    rig_cli.register(app)
     # one-line summaries in `telefringe --help`: the first paragraph of each docstring,
     # its hard line breaks joined
     for cmd in app.registered_commands:

@@ -11,9 +11,11 @@ from telefringe.cli._common import detail, info, progress_bar, read_scan_with_pr
 
 def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
                           pixel_mm: float | None = None, max_residual: float | None = 1.0,
-                          ply: bool = True, title: str | None = None, **decode_options):
+                          ply: bool = True, title: str | None = None, second=None,
+                          **decode_options):
     """Read a scan folder, reconstruct it with ``rig`` (a Rig, or a RigCalibration whose
-    projector nonlinearity is then used) and write ``output``.
+    projector nonlinearity is then used) and write ``output``. With ``second`` (the scan
+    folder of the rig's second camera), match the two cameras' phases instead (stereo).
 
     Writes atomically (the folder appears complete or not at all): ``points.npz``,
     ``cloud.ply``, ``heightmap.tif`` + ``heightmap.json`` (+ ``heightmap_sigma.tif``),
@@ -30,7 +32,7 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     from telefringe.io.reconstruction_folder import write_reconstruction
     from telefringe.io.reports import cloud_summary
     from telefringe.reconstruction.cloud import TriangulationError
-    from telefringe.reconstruction.pipeline import reconstruct_scan
+    from telefringe.reconstruction.pipeline import reconstruct_scan, reconstruct_stereo_scans
 
     output = Path(output)
     check_can_write(output, force=force)
@@ -38,20 +40,29 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     # (a RigCalibration from load_rig stands for its Rig, and reconstruct_scan takes the
     # projector nonlinearity it learned)
     data = read_scan_with_progress(scan_dir)
+    data_2 = None if second is None else read_scan_with_progress(second)
     with progress_bar("reconstructing", 1) as advance:
         try:
-            rec = reconstruct_scan(data, rig, max_residual=max_residual, pixel_mm=pixel_mm,
-                                   **decode_options)
+            if data_2 is None:
+                rec = reconstruct_scan(data, rig, max_residual=max_residual,
+                                       pixel_mm=pixel_mm, **decode_options)
+            else:
+                rec = reconstruct_stereo_scans(data, data_2, rig, max_residual=max_residual,
+                                               pixel_mm=pixel_mm, **decode_options)
         except (DecodeError, PhaseInputError, TriangulationError) as exc:
             msg = str(exc)
-            if msg.startswith(f"{data.source}: "):
-                msg = msg[len(data.source) + 2:]
-            raise InputError(f"{scan_dir}: {msg}") from None
+            for d in (data, data_2):
+                if d is not None and msg.startswith(f"{d.source}: "):
+                    msg = msg[len(d.source) + 2:]
+            where = scan_dir if data_2 is None else f"{scan_dir} + {second}"
+            raise InputError(f"{where}: {msg}") from None
         advance()
     if rec.cloud.count == 0:
         raise InputError(f"{scan_dir}: no valid point (is the object lit and in focus, and "
                          "does the rig belong to this scan?)")
     summary = {"scan": str(scan_dir), **cloud_summary(rec.cloud)}
+    if second is not None:
+        summary["second_scan"] = str(second)
     if rec.height is not None:
         summary["heightmap"] = {"pixel_mm": rec.height.pixel_mm,
                                 "shape": list(rec.height.z.shape)}
@@ -90,6 +101,11 @@ def reconstruct_cmd(
     scan: Path = typer.Argument(..., help="Scan folder (with scan.json)."),
     rig: Path = typer.Option(..., "--rig", help="rig.json written by 'telefringe calibrate'."),
     output: Path = typer.Option(..., "-o", "--output", help="Output folder."),
+    second: Path = typer.Option(None, "--second",
+                                help="The second camera's scan folder of the same patterns "
+                                     "(a two-camera rig.json): match the two cameras' "
+                                     "phases; the cloud is on SCAN's (the first camera's) "
+                                     "pixel grid."),
     force: bool = typer.Option(False, "--force", help="Replace an existing output folder."),
     pixel_mm: float = typer.Option(None, "--pixel-mm",
                                    help="Height-map grid spacing in mm (default: the "
@@ -118,6 +134,8 @@ def reconstruct_cmd(
     heightmap.png and summary.json.
 
     Example: telefringe reconstruct scans/part --rig rig.json -o part_3d
+
+    Two cameras: telefringe reconstruct scans/left --second scans/right --rig rig.json -o 3d
     """
     from telefringe.io.errors import InputError
 
@@ -132,9 +150,16 @@ def reconstruct_cmd(
 
     rig_obj = load_rig(rig)
     extra = {"phase_errors": None} if refit_gamma else {}
+    n_cams = len(getattr(getattr(rig_obj, "rig", rig_obj), "cameras", ()))
+    if second is not None and n_cams < 2:
+        raise InputError(f"{rig}: --second needs a rig with two cameras (camera and camera_2),"
+                         " this one has one")
+    if second is None and getattr(getattr(rig_obj, "rig", rig_obj), "projector", 1) is None:
+        raise InputError(f"{rig}: the rig has no calibrated projector: give the second "
+                         "camera's scan with --second")
     rec = reconstruct_to_folder(scan, rig_obj, output, force=force, pixel_mm=pixel_mm,
                                 max_residual=max_residual, ply=ply, gamma_correction=gamma,
-                                method=method, **extra)
+                                method=method, second=second, **extra)
     c = rec.cloud
     for name, ax in (getattr(rec.coords, "axes", None) or {}).items():
         fit = getattr(ax, "phase_errors", None)

@@ -88,6 +88,7 @@ def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None =
     rows, cols = cloud.shape
     xyz = cloud.xyz
     sig = cloud.sigma_line
+    dirs = np.asarray(cloud.directions, dtype=np.float64)
     n = c.shape[0]
     s_px = np.broadcast_to(np.asarray(sigma_px, dtype=np.float64), (n,))
     out = np.full((n, 3), np.nan)
@@ -117,6 +118,9 @@ def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None =
         w = w / w.mean()
         A = _poly_design(du[sel] / outer_px, dv[sel] / outer_px, degree)
         Y = win[sel]
+        # each point's camera line (one direction for a telecentric camera)
+        dwin = (dirs if dirs.ndim == 1
+                else dirs[v_lo:v_hi + 1, u_lo:u_hi + 1].reshape(-1, 3)[sel])
         sw = np.sqrt(w)
         # one pass of rejection of gross outliers (e.g. a wrong fringe order) at 5 sigma
         keep = np.ones(A.shape[0], dtype=bool)
@@ -124,7 +128,7 @@ def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None =
             coef, *_ = np.linalg.lstsq(A[keep] * sw[keep, None], Y[keep] * sw[keep, None],
                                        rcond=None)
             res = Y - A @ coef
-            rz = res @ cloud.direction  # residuals along the camera line
+            rz = np.sum(res * dwin, axis=1)  # residuals along the camera lines
             scale = _MAD * np.median(np.abs(rz[keep])) + 1e-15
             new_keep = np.abs(rz) <= 5.0 * scale
             if np.array_equal(new_keep, keep):
