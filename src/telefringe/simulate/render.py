@@ -596,7 +596,8 @@ def render_images(geom: Geometry, vrig: VirtualRig, axis: str, levels: np.ndarra
 
 def render_scan(vrig: VirtualRig, scene, groups, *, white: bool = True, black: bool = True,
                 exposures: Sequence[float] = (1.0,), seed: int = 0,
-                progress: Callable | None = None) -> tuple[Scan, Truth]:
+                progress: Callable | None = None,
+                geometry: Geometry | None = None) -> tuple[Scan, Truth]:
     """Render a scan of ``scene`` with the virtual rig.
 
     Parameters
@@ -612,6 +613,9 @@ def render_scan(vrig: VirtualRig, scene, groups, *, white: bool = True, black: b
     seed : int
         Seeds the camera noise.
     progress : callable ``progress(done, total)``, optional.
+    geometry : Geometry, optional
+        ``trace_geometry(vrig, scene)`` computed before (repeated scans of one scene with
+        other noise reuse it; it must come from this rig and scene).
 
     Returns
     -------
@@ -643,7 +647,7 @@ def render_scan(vrig: VirtualRig, scene, groups, *, white: bool = True, black: b
         if progress is not None:
             progress(done[0], total)
 
-    geom = trace_geometry(vrig, scene)
+    geom = trace_geometry(vrig, scene) if geometry is None else geometry
     tick(4)
     rng = np.random.default_rng(seed)
     stacks = []
