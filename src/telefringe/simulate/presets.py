@@ -17,7 +17,7 @@
 ``mixed``
     The paper's telecentric camera with a pinhole projector, the rig most telecentric
     profilometers use (Li & Zhang 2015): the projector is the paper's 800 x 600 panel
-    (13.7 um) behind a 20 mm lens, 150 mm from the plate centre along the paper
+    (13.7 um) behind a 20 mm lens focused 150 mm away, at the plate centre, along the paper
     projector's axis (25.7 deg from the camera's), so it lights about 71 x 53 mm
     there (the camera's whole field, tilted); mild barrel distortion (k1 = -0.06).
 ``macro``
@@ -300,7 +300,7 @@ def _mixed() -> VirtualRig:
     cam = Intrinsics(m=0.1597, du=0.0052, dv=0.0052, u0=474.9241, v0=513.0791,
                      k1=1.5e-4, s1=-2e-5, s2=3e-5, width=1280, height=1024)
     centre = _plate_centre(PAPER_TARGET)
-    f_px = 20.0 / 0.0137
+    f_px = (20.0 * 150.0 / 130.0) / 0.0137  # 20 mm lens focused at 150 mm
     proj = PinholeIntrinsics(fx=f_px, fy=f_px, cx=407.3, cy=318.6, k1=-0.06, k2=0.03,
                              p1=1.5e-4, p2=-1e-4, width=800, height=600)
     projector = _pinhole_at(proj, centre - 150.0 * Rp[2], centre, Rp[0])
@@ -308,10 +308,14 @@ def _mixed() -> VirtualRig:
     return VirtualRig(name="mixed", rig=rig)
 
 
-_MACRO_CAMERA = PinholeIntrinsics(fx=25.0 / 0.0048, fy=25.0 / 0.0048, cx=645.2, cy=506.7,
+# pinhole-equivalent focal lengths: a lens of focal length f focused at distance d has its
+# image plane at f d / (d - f) (thin lens)
+_MACRO_CAMERA = PinholeIntrinsics(fx=(25.0 * 200 / 175) / 0.0048,
+                                  fy=(25.0 * 200 / 175) / 0.0048, cx=645.2, cy=506.7,
                                   k1=-0.15, k2=0.2, p1=3e-4, p2=-2e-4, width=1280,
                                   height=1024)
-_MACRO_PROJECTOR = PinholeIntrinsics(fx=28.0 / 0.0076, fy=28.0 / 0.0076, cx=636.4, cy=412.8,
+_MACRO_PROJECTOR = PinholeIntrinsics(fx=(28.0 * 200 / 172) / 0.0076,
+                                     fy=(28.0 * 200 / 172) / 0.0076, cx=636.4, cy=412.8,
                                      k1=-0.05, k2=0.04, p1=1e-4, p2=1e-4, width=1280,
                                      height=800)
 
