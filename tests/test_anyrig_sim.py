@@ -202,7 +202,7 @@ def test_every_camera_projector_mix_calibrates(mix):
         assert cal.devices[k].rms == pytest.approx(np.sqrt(2) * sigma, rel=0.15)
 
 
-def test_two_pinhole_cameras_calibrate_with_or_without_the_projector():
+def test_two_pinhole_cameras_calibrate_with_or_without_the_projector(tmp_path):
     vrig = get_preset("stereo")
     poses = simulate_calibration_poses(vrig, n_poses=8, seed=3, half_hidden=False)
     P, obs, devs = _observations(vrig.rig, vrig.target, poses, 0.03, seed=6)
@@ -223,6 +223,16 @@ def test_two_pinhole_cameras_calibrate_with_or_without_the_projector():
                                              "projector": "pinhole"},
                              pixel_sizes={}, image_sizes=sizes)
     assert full.rig.projector is not None and full.device_names[-1] == "projector"
+    # rig.json (version 2) keeps every device's report
+    from telefringe.io.rig_json import load_rig, save_rig
+
+    save_rig(tmp_path / "rig.json", full)
+    back = load_rig(tmp_path / "rig.json")
+    assert back.rig.camera_names == ("camera", "camera_2")
+    np.testing.assert_array_equal(back.parameters, full.parameters)
+    for d in full.device_names:
+        assert getattr(back, f"rms_{d}") == pytest.approx(full.devices[d].rms, rel=1e-12)
+    np.testing.assert_allclose(back.rms_per_pose, full.rms_per_pose, rtol=1e-12)
 
 
 def test_telecentric_rigs_without_a_side_or_a_pinhole_device_stop():

@@ -99,12 +99,13 @@ class RigCalibration:
     residuals_camera, residuals_projector : (n_poses, n_points, 2) ndarray, px
         (predicted - observed); NaN where not observed, rejected or unused.
     rms_camera, rms_projector : float, px, RMS reprojection error (2-D length).
-    rms_per_pose : (n_poses, 2) ndarray, px (camera, projector); NaN for unused poses.
+    rms_per_pose : (n_poses, n_devices) ndarray, px, one column per device in the order of
+        ``device_names`` ((camera, projector) for one camera); NaN for unused poses.
     outliers : tuple of Outlier.
     camera_observations, projector_observations : (n_poses, n_points, 2) ndarray, px,
         the observations given (NaN where missing).
-    principal_point : str, "estimate" or "fixed"; principal_point_weak : (bool, bool)
-        for (camera, projector).
+    principal_point : str, "estimate" or "fixed"; principal_point_weak : tuple of bool,
+        one per device in the order of ``device_names``.
     mirror : str, how the global mirror ambiguity was resolved ("projector_side=...",
         to which ``telefringe calibrate`` adds where the side came from).
     warnings : tuple of str, things a person should read (skipped poses, conventions).
@@ -114,6 +115,11 @@ class RigCalibration:
         nonlinearity learned from the calibration scans (mean over the poses of each
         pose's fit, :func:`telefringe.gamma.mean_model`); empty when it was not learned.
         Pass it to :func:`telefringe.fringes.decode.decode` to skip learning it from every scan.
+    devices : dict device name -> :class:`DeviceReport` (every device's part of the
+        report, with its calibration alone); empty for a rig read from rig.json.
+    rms_camera_2, sigma_camera_2, residuals_camera_2, camera_2_observations : the second
+        camera's report (as the ``*_camera`` fields) for a two-camera rig; NaN / None
+        otherwise. The ``*_projector`` fields are NaN when no projector is calibrated.
     """
 
     rig: Rig
@@ -146,6 +152,10 @@ class RigCalibration:
     projector_alone: DeviceCalibration | None = field(default=None, repr=False)
     phase_errors: dict = field(default_factory=dict, repr=False)
     devices: dict = field(default_factory=dict, repr=False)
+    rms_camera_2: float = float("nan")
+    sigma_camera_2: float = float("nan")
+    residuals_camera_2: np.ndarray | None = field(default=None, repr=False)
+    camera_2_observations: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def device_names(self) -> tuple[str, ...]:
@@ -447,13 +457,15 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
         residuals_camera=reports["camera"].residuals,
         residuals_projector=pr.residuals if pr else nan_arr,
         rms_camera=reports["camera"].rms, rms_projector=pr.rms if pr else float("nan"),
-        rms_per_pose=np.column_stack([reports["camera"].rms_per_pose,
-                                      pr.rms_per_pose if pr else np.full(n_poses, np.nan)]),
+        rms_per_pose=np.column_stack([reports[d].rms_per_pose for d in names_d]),
         outliers=tuple(outliers),
         camera_observations=obs["camera"].copy(),
         projector_observations=obs["projector"].copy() if pr else nan_arr.copy(),
         principal_point=principal_point,
-        principal_point_weak=(reports["camera"].principal_point_weak,
-                              pr.principal_point_weak if pr else True), mirror=mirror,
-        warnings=tuple(warns), camera_alone=alone["camera"],
-        projector_alone=alone.get("projector"), devices=reports)
+        principal_point_weak=tuple(reports[d].principal_point_weak for d in names_d),
+        mirror=mirror, warnings=tuple(warns), camera_alone=alone["camera"],
+        projector_alone=alone.get("projector"), devices=reports,
+        **({} if "camera_2" not in reports else dict(
+            rms_camera_2=reports["camera_2"].rms, sigma_camera_2=reports["camera_2"].sigma,
+            residuals_camera_2=reports["camera_2"].residuals,
+            camera_2_observations=reports["camera_2"].observations)))

@@ -83,7 +83,7 @@ def parameter_table(calib):
 def _rms_of(calib, dname: str) -> float:
     if calib.devices:
         return calib.devices[dname].rms
-    return calib.rms_camera if dname == "camera" else calib.rms_projector
+    return float(getattr(calib, f"rms_{dname}", float("nan")))
 
 
 def _pose_table(calib):
@@ -96,10 +96,7 @@ def _pose_table(calib):
         table.add_column(d, justify="right")
     for i, name in enumerate(calib.pose_names):
         if calib.used[i]:
-            if calib.devices:
-                vals = [calib.devices[d].rms_per_pose[i] for d in devices]
-            else:
-                vals = list(calib.rms_per_pose[i])
+            vals = list(calib.rms_per_pose[i])  # one column per device, in order
             table.add_row(name + (" (reference)" if name == calib.reference_pose else ""),
                           *(f"{v:.4f}" for v in vals))
         else:
