@@ -119,11 +119,16 @@ def scan_scene(vrig: VirtualRig, scene, *, seed: int = 0, geometries: dict | Non
     return scans, truths
 
 
-def _decode_all(scans: dict, calib) -> dict:
+def _decode_all(scans: dict, calib, noise=None) -> dict:
+    """Decode each camera's scan with the calibration's projector nonlinearity and the
+    camera's noise model (``noise``; the decoder's default when None)."""
     from telefringe.fringes.decode import decode
 
+    kw = {"noise": noise}
     pe = getattr(calib, "phase_errors", None) or None
-    return {c: decode(s, phase_errors=pe) if pe else decode(s) for c, s in scans.items()}
+    if pe:
+        kw["phase_errors"] = pe
+    return {c: decode(s, **kw) for c, s in scans.items()}
 
 
 def _triangulate(rig: Rig, coords: dict):
@@ -240,13 +245,16 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
     rigs = sample_rigs(calib, n_cal, seed=seed + 1)
     rms = {d: float(r.rms) for d, r in calib.devices.items()}
 
+    # the camera's noise, as a user would give it after measuring it (photon transfer):
+    # the decoder's per-pixel sigma then describes this camera
+    noise = vrig.photometry.noise_model()
     plane = held_out_plane(vrig)
     geoms: dict = {}
     biases, es, sig, masks = [], [], [], []
     coords0 = None
     for k in range(max(int(n_mc), 2)):
         scans, _ = scan_scene(vrig, plane, seed=seed + 101 + k, geometries=geoms)
-        coords = _decode_all(scans, calib)
+        coords = _decode_all(scans, calib, noise)
         if coords0 is None:
             coords0 = coords
         cloud = _triangulate(calib.rig, coords)
@@ -276,7 +284,7 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
     if "steps" in scenes:
         gauge = default_steps()
         scans, _ = scan_scene(vrig, gauge, seed=seed + 301)
-        coords = _decode_all(scans, calib)
+        coords = _decode_all(scans, calib, noise)
         cloud = _triangulate(calib.rig, coords)
         meas = measure_steps(cloud)
         truth = np.diff(np.concatenate([[0.0], gauge.blocks[:, 5]]))
@@ -293,7 +301,7 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
     if "sphere" in scenes:
         sph = default_sphere()
         scans, _ = scan_scene(vrig, sph, seed=seed + 401)
-        coords = _decode_all(scans, calib)
+        coords = _decode_all(scans, calib, noise)
         cloud = _triangulate(calib.rig, coords)
         fit = measure_sphere(cloud).sphere
         cal = [measure_sphere(_triangulate(r, coords)).sphere.radius for r in rigs]

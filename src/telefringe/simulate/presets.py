@@ -150,6 +150,17 @@ class Photometry:
         if not (np.isfinite(self.specular_sigma_deg) and self.specular_sigma_deg > 0):
             raise ValueError("Photometry.specular_sigma_deg must be > 0")
 
+    def noise_model(self):
+        """The camera's noise as the decoder models it
+        (:class:`telefringe.fringes.phase.NoiseModel`, in DN of the stored images): read
+        noise and shot noise from ``read_noise_e`` and ``full_well_e``, quantisation of
+        integer images. What a user would measure on a real camera (photon transfer)."""
+        from telefringe.fringes.phase import NoiseModel
+
+        dn_per_e = 255.0 / self.full_well_e
+        return NoiseModel(read_noise=self.read_noise_e * dn_per_e,
+                          gain=dn_per_e).scaled(self.max_value / 255.0)
+
     @property
     def max_value(self) -> float:
         """The camera's saturation value as stored (255, 65535)."""
