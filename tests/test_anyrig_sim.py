@@ -233,6 +233,14 @@ def test_two_pinhole_cameras_calibrate_with_or_without_the_projector(tmp_path):
     for d in full.device_names:
         assert getattr(back, f"rms_{d}") == pytest.approx(full.devices[d].rms, rel=1e-12)
     np.testing.assert_allclose(back.rms_per_pose, full.rms_per_pose, rtol=1e-12)
+    # the calibration report draws every device (and a rig without a projector)
+    from telefringe.io.figures.calibration_report import write_calibration_report
+
+    for cal_, name in ((full, "full"), (cal, "cams")):
+        (tmp_path / name).mkdir()
+        names = write_calibration_report(tmp_path / name, cal_)
+        assert "residuals_camera_2.png" in names
+        assert ("residuals_projector.png" in names) == (name == "full")
 
 
 def test_telecentric_rigs_without_a_side_or_a_pinhole_device_stop():
