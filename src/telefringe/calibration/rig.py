@@ -1,4 +1,12 @@
-"""A camera and a projector calibrated jointly over one set of target poses.
+"""Devices calibrated jointly over one set of target poses: a camera and a projector,
+each telecentric or pinhole, or two cameras with an optional projector
+(:func:`calibrate_devices`; :func:`calibrate_rig` for one camera and a projector).
+
+Each device starts from the closed form of its model, alone; the starts are put in one
+world frame (the target at the reference pose) through their per-pose rotations, on one
+rigid branch of the telecentric mirror ambiguity (a pinhole device settles it, else the
+projector's side); one bundle adjustment over every device and pose follows, weighted by
+each device's noise, with outlier rejection and the parameter covariance.
 
 Units: mm in the world and on sensors, px in images, radians. Reprojection "RMS" is the
 root mean square of the 2-D error length over points (px of the device). The principal
