@@ -9,12 +9,17 @@ Physics, in the order light meets it
    pixel values with box and Gaussian (error functions), tabulated every 1/32 projector
    pixel and linearly interpolated (error <= 1e-4 of the pattern contrast, tested).
    The panel edges (beyond which there is no light) are blurred the same way.
-   Collimated illumination along the projector axis.
-2. Scene: each camera sub-pixel ray (orthographic, through the camera's inverse
-   distortion) meets the scene; the hit point's projector coordinate comes from
-   ``rig.projector.project`` (distortion included); a ray toward the projector tests for
-   shadow. Lambertian ``albedo * cos(incidence)``, plus a Gaussian specular lobe around
-   the mirror direction for shiny parts, plus ambient light ``ambient * albedo``.
+   A telecentric projector: collimated light along its axis. A pinhole projector: light
+   from its projection centre, whose irradiance falls as the inverse square of the
+   distance (relative to the depth of the world origin in the projector frame).
+2. Scene: each camera sub-pixel ray meets the scene: orthographic rays through the
+   inverse distortion for a telecentric camera, rays from the projection centre through
+   the inverse distortion (``camera.backproject``) for a pinhole one. The hit point's
+   projector coordinate comes from ``rig.projector.project`` (distortion included); a ray
+   toward the projector (along its axis, or toward its centre) tests for shadow.
+   Lambertian ``albedo * cos(incidence)``, plus a Gaussian specular lobe around the
+   mirror direction for shiny parts, plus ambient light ``ambient * albedo``. A pinhole
+   camera's lens passes ``cos^4`` of the ray's angle to the axis (natural vignetting).
 3. Camera: integration over each square pixel: 2 x 2 Gauss-Legendre samples on pixels
    that see one smooth surface patch, ``edge_supersample`` x ``edge_supersample`` (>=
    ``supersample``) exactly traced midpoint samples on pixels that straddle an edge
@@ -310,12 +315,12 @@ def _projector_light(proj, P: np.ndarray):
         n = P.shape[0]
         return up, vp, to_proj, np.full(n, _RAY_START_MM), np.ones(n)
     up, vp = proj.project(P)
-    C = proj.R_dev_world.T @ (-np.asarray(proj.t_dev, dtype=float))
+    C = proj.centre_world
     vec = C - P
     dist = np.linalg.norm(vec, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         to_proj = np.ascontiguousarray(vec / dist[:, None])
-        r_ref = float(proj.R_dev_world[2] @ np.zeros(3) + proj.t_dev[2])
+        r_ref = float(proj.t_dev[2])  # depth of the world origin in the projector frame
         irr = (r_ref / dist) ** 2
     return up, vp, to_proj, dist, irr
 
