@@ -355,3 +355,55 @@ def test_macro_rig_measures_a_held_out_plane_within_its_uncertainty():
     assert f.of_pixel_sigma < 0.1, f
     assert abs(f.z_score) <= 3.0, f
     assert abs(res.sigma_ratio - 1.0) <= 0.1, res.sigma_ratio
+
+
+def test_perspective_eccentricity_of_circle_centres_is_corrected():
+    """Observations as a detector sees them: each pinhole camera of the stereo rig
+    measures the centre of a circle's image, not the image of its centre (0.005 px
+    noise). With the markers' radius the calibration corrects this: a plane 0.8 mm up,
+    triangulated from its true pixels, within 3 sigma of the calibration's own
+    uncertainty (measured -0.11 um); without it, off by many sigma (measured +2.6 um)."""
+    from telefringe.calibration.rig import _circle_image_centre
+    from telefringe.simulate.anyrig import sample_rigs
+
+    vrig = get_preset("stereo")
+    poses = simulate_calibration_poses(vrig, n_poses=12, seed=0, half_hidden=False)
+    T = vrig.target
+    r, c = np.mgrid[0:T.rows, 0:T.cols]
+    P = np.stack([c.ravel() * T.pitch_mm, r.ravel() * T.pitch_mm, np.zeros(r.size)], 1)
+    rng = np.random.default_rng(4)
+    c1, c2 = vrig.rig.cameras.values()
+    radius = T.diameter_mm / 2
+    obs = {"camera": [], "camera_2": []}
+    for p in poses:
+        R = np.broadcast_to(p.R_world_target, (len(P), 3, 3))
+        Tt = np.broadcast_to(p.t_world_target, (len(P), 3))
+        for k, cam in (("camera", c1), ("camera_2", c2)):
+            e = _circle_image_centre(cam, R, Tt, P, radius)
+            obs[k].append(e + rng.normal(0, 0.005, e.shape))
+    obs = {k: np.array(v) for k, v in obs.items()}
+    kw = dict(models={"camera": "pinhole", "camera_2": "pinhole"}, pixel_sizes={},
+              image_sizes={"camera": c1.image_size, "camera_2": c2.image_size})
+    g = np.stack(np.meshgrid(np.linspace(5, 25, 9), np.linspace(4, 20, 9)), -1).reshape(-1, 2)
+    X = np.column_stack([g, np.full(len(g), 0.8)])
+    u1, v1 = c1.project(X)
+    u2, v2 = c2.project(X)
+
+    def plane_offset(rig):  # mean z error of the two rays' midpoints, mm
+        a, b = rig.cameras.values()
+        r1, r2 = a.backproject(u1, v1), b.backproject(u2, v2)
+        o1, d1 = np.broadcast_to(r1.origin, X.shape), r1.direction
+        o2, d2 = np.broadcast_to(r2.origin, X.shape), r2.direction
+        w = o1 - o2
+        aa, bb, cc = (d1 * d1).sum(1), (d1 * d2).sum(1), (d2 * d2).sum(1)
+        dd, ee = (d1 * w).sum(1), (d2 * w).sum(1)
+        den = aa * cc - bb * bb
+        s1, s2 = (bb * ee - cc * dd) / den, (aa * ee - bb * dd) / den
+        mid = 0.5 * ((o1 + s1[:, None] * d1) + (o2 + s2[:, None] * d2))
+        return float(np.mean(mid[:, 2] - X[:, 2]))
+
+    corrected = calibrate_devices(P, obs, marker_radius=radius, **kw)
+    sigma = np.std([plane_offset(rg) for rg in sample_rigs(corrected, 200, seed=1)])
+    assert abs(plane_offset(corrected.rig)) < 3 * sigma, (plane_offset(corrected.rig), sigma)
+    plain = calibrate_devices(P, obs, **kw)
+    assert abs(plane_offset(plain.rig)) > 10 * sigma

@@ -274,7 +274,8 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
                       principal_point_sigma: float | None = None,
                       outlier_threshold: float = 5.0, max_rounds: int = 3,
                       min_poses: int = 4, min_points: int = 6,
-                      warnings: Sequence[str] = ()) -> RigCalibration:
+                      warnings: Sequence[str] = (),
+                      marker_radius: float | None = None) -> RigCalibration:
     """Joint calibration of any devices (one or two cameras, an optional projector).
 
     Each device is calibrated alone with the closed-form start of its model
@@ -291,6 +292,16 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
         names ``camera`` (first), optionally ``camera_2``, optionally ``projector``.
     models, pixel_sizes, image_sizes : mappings by device name (model "telecentric" or
         "pinhole"; pixel size (du, dv) mm, None for a pinhole device; (width, height) px).
+    marker_radius : float, mm, the radius of the target's circles, or None. Given, and a
+        camera sees depth (a pinhole camera), the perspective eccentricity of the circle
+        centres is corrected: the centre of a circle's image (what a detector measures)
+        is not the image of its centre. The observations are corrected with the current
+        estimate (each camera's by the centre of its own image of the circle; the
+        projector's, read through the first camera's phase at that camera's image
+        centre, by the projector's image of the plate point seen there) and the
+        adjustment repeated (twice). Residuals are then those of the corrected
+        observations. A telecentric camera's images of circles are centred (an affine map
+        keeps centres), so no correction is made for it.
     Others : as :func:`calibrate_rig`.
 
     Returns
@@ -408,6 +419,19 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
         build, [obs[d] for d in names_d], [poses] * len(names_d),
         threshold=outlier_threshold, max_rounds=max_rounds, names=list(names_d),
         pose_names=names, grid_shape=grid_shape)
+    if marker_radius is not None and any(
+            dev.sees_depth for d, dev in zip(names_d, devs0, strict=True) if d != "projector"):
+        # perspective eccentricity: a circle's image centre is not the image of its
+        # centre; correct the observations with the current estimate and adjust again
+        for _ in range(2):
+            shift = _eccentricity(problem, x, names_d, poses, shape, float(marker_radius))
+            fixed = [obs[d] - shift[k] for k, d in enumerate(names_d)]
+            prev = (problem, x)
+            problem, x, keeps, outliers, sigmas = _adjust_with_rejection(
+                lambda o, s_, p_, prev=prev: build(o, s_, prev if p_ is None else p_),
+                fixed, [poses] * len(names_d), threshold=outlier_threshold,
+                max_rounds=max_rounds, names=list(names_d), pose_names=names,
+                grid_shape=grid_shape)
     problem, x = problem.rebased(x)
     devs, R_wt_final, T_wt_final = problem.unpack(x)
     cams = {d: devs[k] for k, d in enumerate(names_d) if d != "projector"}
@@ -477,3 +501,58 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
             rms_camera_2=reports["camera_2"].rms, sigma_camera_2=reports["camera_2"].sigma,
             residuals_camera_2=reports["camera_2"].residuals,
             camera_2_observations=reports["camera_2"].observations)))
+
+
+def _circle_image_centre(dev, R, T, centres_target, radius, n: int = 64):
+    """Centres (m, 2) px of the images of circles of ``radius`` mm centred at
+    ``centres_target`` (m, 3) on the target plane at pose (R (m, 3, 3), T (m, 3)): the
+    area centroids of the projected boundaries (the ellipse centre without distortion)."""
+    th = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    ring = np.stack([np.cos(th), np.sin(th), np.zeros(n)], axis=1) * radius  # (n, 3)
+    pts = centres_target[:, None, :] + ring[None, :, :]                      # (m, n, 3)
+    X = np.einsum("mij,mnj->mni", R, pts) + T[:, None, :]
+    u, v = dev.project(X)
+    un, vn = np.roll(u, -1, axis=1), np.roll(v, -1, axis=1)
+    cr = u * vn - un * v
+    A = cr.sum(axis=1) / 2.0
+    cx = ((u + un) * cr).sum(axis=1) / (6.0 * A)
+    cy = ((v + vn) * cr).sum(axis=1) / (6.0 * A)
+    return np.stack([cx, cy], axis=1)
+
+
+def _eccentricity(problem: BundleProblem, x, names_d, poses, shape, radius):
+    """Per device (n_poses, n_points, 2) px: observed centre minus image of the centre,
+    predicted at ``x`` (zero for unused poses and for telecentric cameras)."""
+    devs, R_wt, T_wt = problem.unpack(x)
+    n_u = len(poses)
+    P = problem.P
+    m = P.shape[0]
+    pose_idx = np.repeat(np.arange(n_u), m)
+    pt_idx = np.tile(np.arange(m), n_u)
+    R = R_wt[pose_idx]
+    T = T_wt[pose_idx]
+    Xc = np.einsum("mij,mj->mi", R, P[pt_idx]) + T
+    out = []
+    first = devs[0]
+    cam_centre = None
+    for k, d in enumerate(names_d):
+        dev = devs[k]
+        shift = np.zeros((len(pt_idx), 2))
+        if d != "projector" and dev.sees_depth:
+            c = _circle_image_centre(dev, R, T, P[pt_idx], radius)
+            shift = c - np.stack(dev.project(Xc), axis=1)
+            if k == 0:
+                cam_centre = c
+        elif d == "projector" and cam_centre is not None:
+            # the plate point the first camera sees at its circle image's centre
+            rays = first.backproject(cam_centre[:, 0], cam_centre[:, 1])
+            o = np.broadcast_to(rays.origin, Xc.shape)
+            dirs = np.broadcast_to(rays.direction, Xc.shape)
+            nrm = R[:, :, 2]
+            s = np.einsum("mi,mi->m", T - o, nrm) / np.einsum("mi,mi->m", dirs, nrm)
+            Xs = o + s[:, None] * dirs
+            shift = np.stack(dev.project(Xs), axis=1) - np.stack(dev.project(Xc), axis=1)
+        full = np.zeros(shape)
+        full[np.asarray(poses)[pose_idx], pt_idx] = shift
+        out.append(full)
+    return out
