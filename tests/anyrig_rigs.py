@@ -152,3 +152,24 @@ def stereo_truth(rig: Rig, shape=SHAPE, plane=(0.05, -0.03, 0.2)):
     X1 = plane_hits(cams[0], shape, plane)
     X2 = plane_hits(cams[1], shape, plane)
     return X1, rig.projector.project(X1), rig.projector.project(X2)
+
+
+def step_hits(cam, shape, h=1.5):
+    """Where each pixel's line first meets a step: the plane z = h for x < 0, z = 0 for
+    x >= 0 and the wall x = 0 between them (mm); the camera's occlusions are exact."""
+    rows, cols = shape
+    v, u = np.mgrid[0:rows, 0:cols].astype(float)
+    o, d = cam.backproject(u, v)
+    o = np.broadcast_to(o, shape + (3,))
+    d = np.broadcast_to(d, shape + (3,))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_up = (h - o[..., 2]) / d[..., 2]
+        s_lo = -o[..., 2] / d[..., 2]
+        s_wall = -o[..., 0] / d[..., 0]
+        x_up = o[..., 0] + s_up * d[..., 0]
+        x_lo = o[..., 0] + s_lo * d[..., 0]
+        z_wall = o[..., 2] + s_wall * d[..., 2]
+        cand = np.stack([np.where(x_up < 0, s_up, np.inf), np.where(x_lo >= 0, s_lo, np.inf),
+                         np.where((z_wall >= 0) & (z_wall <= h), s_wall, np.inf)])
+    s = cand.min(axis=0)
+    return o + s[..., None] * d

@@ -148,7 +148,8 @@ _CMDS = _commands()
 # below are parametrised over _CMDS and would otherwise just shrink).
 _DOCUMENTED = [["decode"], ["patterns"], ["calibrate"], ["reconstruct"], ["paper"], ["demo"],
                ["simulate", "calibration"], ["simulate", "scan"], ["measure", "plate"],
-               ["measure", "sphere"], ["measure", "bga"], ["measure", "steps"]]
+               ["measure", "sphere"], ["measure", "bga"], ["measure", "steps"],
+               ["accept"], ["simulate", "acceptance"]]
 
 
 def test_every_documented_command_is_registered():

@@ -113,3 +113,28 @@ def test_calibration_json_written_with_the_side(tmp_path):
     doc = json.loads((tmp_path / "calibration.json").read_text())
     assert doc["projector_side"] == "right"
     assert parse_calibration_manifest(doc).projector_side == "right"
+
+
+@pytest.mark.parametrize("turns", [0, 1, 2, 3])
+def test_an_upright_pins_shadow_falls_away_from_the_projector(turns):
+    """What the message tells the user to look at, checked with the renderer: the
+    shadow of a pin on the plate lies on the side of the pin opposite ``projector_side``."""
+    from dataclasses import replace
+
+    from telefringe.simulate.render import trace_geometry
+    from telefringe.simulate.scenes import StepGauge
+
+    base = get_preset("fast")
+    vrig = replace(base, rig=turned_projector(base.rig, turns))
+    pin = StepGauge(blocks=np.array([[14.7, 15.3, 11.7, 12.3, 0.0, 3.0]]))
+    t = trace_geometry(vrig, pin).truth
+    shadow = t.visible & ~t.lit & (t.part == 0)
+    top = t.part == 1
+    assert shadow.sum() > 20
+    offset = (np.array(np.nonzero(shadow))[::-1].mean(axis=1)
+              - np.array(np.nonzero(top))[::-1].mean(axis=1))  # (du, dv) px
+    toward = {"left": (-1, 0), "right": (1, 0), "top": (0, -1), "bottom": (0, 1)}
+    side = projector_side(vrig)
+    along = float(offset @ np.array(toward[side]))
+    assert along < -5.0, (side, offset)  # clearly away from the projector
+    assert abs(along) > 2 * abs(float(offset @ np.array(toward[side])[::-1])), (side, offset)

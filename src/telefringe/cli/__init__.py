@@ -56,7 +56,9 @@ def _flags_show_no_type() -> None:
 
 def _register_all():
     from telefringe.cli import (
+        accept,
         calibrate,
+        capture,
         decode,
         demo,
         measure,
@@ -67,9 +69,11 @@ def _register_all():
     )
     from telefringe.cli import rig as rig_cli
 
-    for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo):
+    for mod in (simulate, decode, patterns, calibrate, reconstruct, measure, paper, demo,
+                accept):
         mod.register(app)
     rig_cli.register(app)
+    capture.register(app)
     # one-line summaries in `telefringe --help`: the first paragraph of each docstring,
     # its hard line breaks joined
     for cmd in app.registered_commands:

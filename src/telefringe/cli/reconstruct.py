@@ -106,6 +106,11 @@ def reconstruct_cmd(
                                      "(a two-camera rig.json): match the two cameras' "
                                      "phases; the cloud is on SCAN's (the first camera's) "
                                      "pixel grid."),
+    search_mm: float = typer.Option(None, "--search-mm",
+                                    help="With --second: half-length (mm) of each line "
+                                         "searched for the match around where the cameras' "
+                                         "axes meet (default: the first camera's field "
+                                         "diagonal there)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing output folder."),
     pixel_mm: float = typer.Option(None, "--pixel-mm",
                                    help="Height-map grid spacing in mm (default: the "
@@ -143,6 +148,8 @@ def reconstruct_cmd(
         raise InputError(f"--pixel-mm must be > 0, got {pixel_mm}")
     if not (max_residual > 0):
         raise InputError(f"--max-residual must be > 0, got {max_residual}")
+    if search_mm is not None and not (search_mm > 0 and second is not None):
+        raise InputError(f"--search-mm needs --second and a value > 0, got {search_mm}")
     # third-party leaves only, which nothing else imports meanwhile (two threads importing
     # modules that import each other could see each other's half-initialised modules)
     _prefetch("plyfile", "tifffile", "PIL.Image", "PIL.ImageDraw")
@@ -159,7 +166,8 @@ def reconstruct_cmd(
                          "camera's scan with --second")
     rec = reconstruct_to_folder(scan, rig_obj, output, force=force, pixel_mm=pixel_mm,
                                 max_residual=max_residual, ply=ply, gamma_correction=gamma,
-                                method=method, second=second, **extra)
+                                method=method, second=second,
+                                **({"search_mm": search_mm} if search_mm else {}), **extra)
     c = rec.cloud
     for name, ax in (getattr(rec.coords, "axes", None) or {}).items():
         fit = getattr(ax, "phase_errors", None)

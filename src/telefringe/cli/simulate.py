@@ -188,10 +188,87 @@ def scan(
     info(f"wrote {out / 'scan'} ({n} images) and the ground truth in {out / 'truth'}")
 
 
+def acceptance(
+    out: Path = typer.Argument(..., help="New folder to create (OUT/acceptance, "
+                                         "OUT/artefacts.json, OUT/truth)."),
+    rig: _Rig = typer.Option(_Rig.paper, "--rig", help="Virtual rig preset."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the noise."),
+    force: bool = typer.Option(False, "--force", help="Replace OUT if it exists."),
+):
+    """Simulate the scans of a VDI/VDE 2634 Part 2 acceptance test: a matte test sphere
+    at 10 positions, a ball bar at 7 and a plane at 6, sized and placed in the rig's
+    measuring volume (L0 = its diagonal; see docs/acceptance.md).
+
+    Writes OUT/acceptance (a scan folder per position and acceptance.json naming each
+    one's artefact), OUT/artefacts.json (the artefacts' calibrated values, as a
+    certificate gives them) and OUT/truth (true rig, volume and scenes). Calibrate the
+    same rig with 'telefringe simulate calibration', then run 'telefringe accept'.
+
+    Example: telefringe simulate acceptance sim_acc --rig fast
+    """
+    from telefringe.io.acceptance_json import write_acceptance_set, write_artefacts
+    from telefringe.io.atomic import atomic_dir, check_can_write
+    from telefringe.io.jsonable import write_json
+    from telefringe.io.scan_json import write_scan
+    from telefringe.io.truth import write_rig_truth, write_truth
+    from telefringe.metrology.acceptance import Artefacts
+    from telefringe.simulate.acceptance import (
+        U_CERTIFICATE_MM,
+        acceptance_positions,
+        iter_acceptance_scans,
+        measuring_volume,
+    )
+    from telefringe.simulate.presets import get_preset
+
+    _check_options(seed=seed)
+    check_can_write(out, force=force)
+    from telefringe.io.errors import InputError
+
+    vrig = get_preset(rig.value)
+    try:
+        vol = measuring_volume(vrig)
+        art, positions = acceptance_positions(vrig, vol)
+    except ValueError as exc:  # a rig whose volume cannot hold the artefacts
+        raise InputError(str(exc)) from None
+    u = U_CERTIFICATE_MM
+    cert = Artefacts(sphere_diameter=art.sphere_diameter, u_sphere_diameter=u, sphere_form=0.0,
+                     u_sphere_form=u, bar_distance=art.bar_distance, u_bar_distance=u,
+                     bar_diameters=(art.sphere_diameter, art.sphere_diameter),
+                     plane_flatness=0.0, u_plane_flatness=u, plane_length=art.plane_length,
+                     plane_width=art.plane_width)
+    with atomic_dir(out, force=force) as tmp:
+        acc = tmp / "acceptance"
+        truth_dir = tmp / "truth"
+        acc.mkdir()
+        truth_dir.mkdir()
+        write_rig_truth(truth_dir, vrig)
+        write_json(truth_dir / "volume.json", {
+            "measuring_volume_mm": {"x": [vol.x0, vol.x1], "y": [vol.y0, vol.y1],
+                                    "z": [vol.z0, vol.z1]},
+            "L0_mm": vol.L0, "artefacts": art})
+        with progress_bar(f"rendering {len(positions)} positions ({vrig.name} rig)",
+                          len(positions)) as advance:
+            for pos, result, truth in iter_acceptance_scans(vrig, positions, seed=seed,
+                                                            progress=_advance_by(advance)):
+                write_scan(acc / pos.name, result)
+                write_truth(truth_dir, pos.name, truth,
+                            extra={"artefact": pos.artefact, "description": pos.description})
+                detail(f"{pos.name}: {pos.artefact}, {pos.description}")
+        write_acceptance_set(acc, [(p.name, p.artefact, p.description) for p in positions])
+        write_artefacts(tmp / "artefacts.json", cert,
+                        meta={"source": f"virtual rig {vrig.name!r}: exact artefacts; u is a "
+                                        "typical certificate's"})
+    info(f"wrote {out / 'acceptance'} ({len(positions)} scans; L0 = {vol.L0:.2f} mm, sphere "
+         f"{art.sphere_diameter:.2f} mm, ball bar {art.bar_distance:.1f} mm, plane "
+         f"{art.plane_length:.1f} mm), {out / 'artefacts.json'} and the ground truth in "
+         f"{out / 'truth'}")
+
+
 def register(app: typer.Typer) -> None:
-    """Add ``telefringe simulate calibration|scan``."""
+    """Add ``telefringe simulate calibration|scan|acceptance``."""
     sim = typer.Typer(name="simulate", no_args_is_help=True,
                       help="Render calibration sets and scans with the virtual rig.")
     sim.command("calibration")(calibration)
     sim.command("scan")(scan)
+    sim.command("acceptance")(acceptance)
     app.add_typer(sim, name="simulate")

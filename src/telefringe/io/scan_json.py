@@ -38,6 +38,7 @@ __all__ = [
     "write_scan",
     "scan_manifest_to_json",
     "scan_image_names",
+    "read_capture",
 ]
 
 SCAN_FORMAT = "telefringe-scan"
@@ -50,7 +51,8 @@ MAX_SCAN_BYTES = 8 * 1024**3
 
 _PHASE_KEYS = {"type", "axis", "periods", "steps", "exposure", "offset", "images"}
 _GRAY_KEYS = {"type", "axis", "bits", "complementary", "exposure", "images"}
-_SCAN_KEYS = {"format", "version", "projector", "patterns", "white", "black", "meta"}
+_SCAN_KEYS = {"format", "version", "projector", "patterns", "white", "black", "meta",
+              "capture"}
 
 
 # --------------------------------------------------------------------------- scan manifest
@@ -181,9 +183,93 @@ def parse_scan_manifest(doc, *, folder: Path | None = None, where: str = "scan.j
                       f"with periods = {2 ** gg.bits} on that axis")
     if groups and not any(isinstance(g, PhaseGroup) for g in groups):
         probs.add("no phase group: a scan needs at least one phase-shifted fringe group")
+    if "capture" in doc:
+        listed = {n for g in groups for n in g.images} | {
+            v for v in (extras.get("white"), extras.get("black")) if v}
+        _check_capture(doc["capture"], listed, probs)
     probs.raise_if_any()
     return ScanManifest(projector_width=int(pw), projector_height=int(ph), groups=tuple(groups),
                         white=extras.get("white"), black=extras.get("black"))
+
+
+def _check_capture(cap, images: set, probs) -> None:
+    """The optional ``capture`` block (provenance of a capture, docs/formats.md): the
+    fields described there are checked; others are kept as they are."""
+    w = "'capture'"
+    if not isinstance(cap, dict):
+        probs.add(f"{w} must be an object, got {_r(cap)}")
+        return
+    if cap.get("version") != 1:
+        probs.add(f"{w}.version must be 1, got {_r(cap.get('version'))}")
+    if cap.get("mode") not in ("streamed", "sequenced"):
+        probs.add(f"{w}.mode must be 'streamed' or 'sequenced', got {_r(cap.get('mode'))}")
+    for dev in ("camera", "projector"):
+        d = cap.get(dev)
+        if not isinstance(d, dict) or not isinstance(d.get("driver"), str):
+            probs.add(f"{w}.{dev} must be an object with a 'driver' (string), got {_r(d)}")
+            continue
+        for key in ("model", "serial", "address", "vendor"):
+            if key in d and not isinstance(d[key], str):
+                probs.add(f"{w}.{dev}.{key} must be a string, got {_r(d[key])}")
+    settings = cap.get("settings")
+    if not isinstance(settings, list) or not settings:
+        probs.add(f"{w}.settings must be a non-empty list (one per exposure), got "
+                  f"{_r(settings)}")
+    else:
+        for i, st in enumerate(settings):
+            if not isinstance(st, dict):
+                probs.add(f"{w}.settings[{i}] must be an object, got {_r(st)}")
+                continue
+            if not is_num(st.get("exposure_s")) or st["exposure_s"] <= 0:
+                probs.add(f"{w}.settings[{i}].exposure_s must be a positive number (s), got "
+                          f"{_r(st.get('exposure_s'))}")
+            if not isinstance(st.get("pixel_format"), str):
+                probs.add(f"{w}.settings[{i}].pixel_format must be a string, got "
+                          f"{_r(st.get('pixel_format'))}")
+            roi = st.get("roi")
+            if roi is not None and not (isinstance(roi, list) and len(roi) == 4
+                                        and all(is_int(v) and v >= 0 for v in roi)):
+                probs.add(f"{w}.settings[{i}].roi must be [x, y, width, height] (pixels), got "
+                          f"{_r(roi)}")
+    lat = cap.get("latency")
+    if lat is not None and not (isinstance(lat, dict) and is_num(lat.get("latency_s"))
+                                and lat["latency_s"] >= 0):
+        probs.add(f"{w}.latency must be an object with 'latency_s' >= 0 (s), got {_r(lat)}")
+    retries = cap.get("retries", 0)
+    if not is_int(retries) or retries < 0:
+        probs.add(f"{w}.retries must be an integer >= 0, got {_r(retries)}")
+    frames = cap.get("frames")
+    if not isinstance(frames, list):
+        probs.add(f"{w}.frames must be a list (one entry per image), got {_r(frames)}")
+        return
+    seen = set()
+    for i, f in enumerate(frames):
+        fw = f"{w}.frames[{i}]"
+        if not isinstance(f, dict):
+            probs.add(f"{fw} must be an object, got {_r(f)}")
+            continue
+        name = f.get("image")
+        if not isinstance(name, str) or (images and name not in images):
+            probs.add(f"{fw}.image must name one of the scan's images, got {_r(name)}")
+        elif name in seen:
+            probs.add(f"{fw}.image {_r(name)} is listed twice")
+        seen.add(name)
+        if not is_int(f.get("id")):
+            probs.add(f"{fw}.id must be an integer (the camera's frame id), got "
+                      f"{_r(f.get('id'))}")
+        ts = f.get("timestamp_ns")
+        if ts is not None and not is_int(ts):
+            probs.add(f"{fw}.timestamp_ns must be an integer or null, got {_r(ts)}")
+        att = f.get("attempts", 1)
+        if not is_int(att) or att < 1:
+            probs.add(f"{fw}.attempts must be an integer >= 1, got {_r(att)}")
+
+
+def read_capture(folder) -> dict | None:
+    """The validated ``capture`` block of ``folder/scan.json`` (None when it has none)."""
+    _, _, doc = _load_scan(folder)
+    cap = doc.get("capture")
+    return dict(cap) if isinstance(cap, dict) else None
 
 
 def scan_manifest_to_json(manifest: ScanManifest) -> dict:
@@ -311,8 +397,12 @@ def _json_default(x):
     raise TypeError(f"scan.meta holds a {type(x).__name__}, which JSON cannot store")
 
 
-def write_scan(folder, scan: Scan, *, force: bool = False) -> Path:
+def write_scan(folder, scan: Scan, *, force: bool = False, capture: dict | None = None
+               ) -> Path:
     """Write a scan folder atomically (PNG images + ``scan.json``).
+
+    ``capture``: the provenance of a capture (the optional ``capture`` block, see
+    docs/formats.md), written as is after validation.
 
     Groups without image names get systematic ones. White/black images are written as
     ``white.png`` / ``black.png`` when present; ``scan.meta`` (if not empty) as the
@@ -328,6 +418,8 @@ def write_scan(folder, scan: Scan, *, force: bool = False) -> Path:
     doc = scan_manifest_to_json(man)
     if scan.meta:
         doc["meta"] = scan.meta
+    if capture is not None:
+        doc["capture"] = capture
     text = json.dumps(doc, indent=2, allow_nan=False, default=_json_default) + "\n"
     try:
         parse_scan_manifest(json.loads(text), where=f"{folder}/scan.json (being written)")

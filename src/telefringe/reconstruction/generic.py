@@ -34,9 +34,12 @@ sigma_u^2 + (dv_P/ds)^2 / sigma_v^2)`` with both axes), the covariance is ``sigm
 d^T`` and ``PointCloud.sigma_line = sigma_s`` (``d`` is unit).
 
 The cloud's ``directions`` are the camera's: (3,) for a telecentric camera, one per
-pixel (rows, cols, 3) for a pinhole one. Model-specific compiled solvers
-(:mod:`telefringe.reconstruction._generic_kernels`) reproduce this path fast; this module
-is the reference they are tested against.
+pixel (rows, cols, 3) for a pinhole one. A compiled solver for pinhole and telecentric
+projectors (:mod:`telefringe.reconstruction._generic_kernels`, chosen by the projector's
+``model``; ``compiled=False`` bypasses it) reproduces this path fast: this module is the
+reference it is tested against (same flags, points within 1e-9 mm). Building a
+triangulator (the camera's lines, once per rig and image size, cached) likewise uses the
+camera model's compiled back-projection where there is one, tested against the protocol's.
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ import numpy as np
 
 from telefringe.devices.rig import Rig
 from telefringe.geometry.distortion import ConvergenceError
+from telefringe.reconstruction import _generic_kernels as _gk
 from telefringe.reconstruction._rig import as_rig as _as_rig
 from telefringe.reconstruction.cloud import (
     FLAG_INCONSISTENT,
@@ -203,6 +207,7 @@ class GenericTriangulator:
     bad: np.ndarray
     s_ref: np.ndarray
     step: float
+    planes: tuple | None = None  #: the lines as (3, n) planes for a compiled solver
 
     @classmethod
     def for_shape(cls, rig, shape) -> GenericTriangulator:
@@ -233,19 +238,35 @@ class GenericTriangulator:
         if rig.projector is None:
             raise TriangulationError("the rig has no projector: a camera + projector "
                                      "triangulation needs a calibrated projector")
-        o, d, bad = safe_backproject(rig.camera, u.reshape(-1), v.reshape(-1))
+        uf = np.ascontiguousarray(u, dtype=np.float64).reshape(-1)
+        vf = np.ascontiguousarray(v, dtype=np.float64).reshape(-1)
+        # the camera model's compiled back-projection where it has one (tested equal to
+        # the protocol's), else the protocol
+        lines = _gk.camera_lines(rig.camera, uf, vf)
+        o, d, bad = lines if lines is not None else safe_backproject(rig.camera, uf, vf)
         P0, scale = working_point(rig.camera, rig.projector)
         s_ref = np.sum((P0 - o) * d, axis=-1)
-        s_ref = np.broadcast_to(s_ref, (int(np.prod(shape)),)).copy()
+        n = int(np.prod(shape))
+        s_ref = np.broadcast_to(s_ref, (n,)).copy()
+        planes = None
+        if _gk.solver_for(rig.projector) is not None:
+            # contiguous planes for the compiled solver (a shared point or direction is
+            # repeated: the loop then reads every pixel's alike, and vectorises); the
+            # per-pixel arrays become views of them
+            O = np.ascontiguousarray(np.broadcast_to(o, (n, 3)).T)
+            D = np.ascontiguousarray(np.broadcast_to(d, (n, 3)).T)
+            o = o if o.ndim == 1 else O.T
+            d = d if d.ndim == 1 else D.T
+            planes = (_readonly(O), _readonly(D))
         for a in (o, d, bad, s_ref):
             _readonly(a)
-        return cls(rig, tuple(shape), o, d, bad, s_ref, 0.05 * scale)
+        return cls(rig, tuple(shape), o, d, bad, s_ref, 0.05 * scale, planes)
 
     @property
     def directions(self) -> np.ndarray:
         """The cloud's directions: (3,) shared, or shape + (3,)."""
         d = self.direction
-        return d if d.ndim == 1 else d.reshape(self.shape + (3,))
+        return d if d.ndim == 1 else _readonly(d.reshape(self.shape + (3,)))
 
     def line_points(self, s) -> np.ndarray:
         """World points (..., 3) mm at line parameter ``s`` (shape ``shape``)."""
@@ -255,16 +276,27 @@ class GenericTriangulator:
 
     def triangulate(self, coords, *, max_residual: float | None = 1.0,
                     max_sigma_z: float | None = None, use_v_p: bool = True,
-                    check_bounds: bool = True) -> PointCloud:
+                    check_bounds: bool = True, compiled: bool = True) -> PointCloud:
         """Triangulate decoded projector coordinates; see :func:`triangulate`."""
         obs = _observations(coords, self.shape)
         n = int(np.prod(self.shape))
         proj = self.rig.projector
         size = proj.image_size if check_bounds else None
         W, H = (float(size[0]), float(size[1])) if size is not None else (np.inf, np.inf)
-        out = _Out(n)
+        solver = _gk.solver_for(proj) if compiled and self.planes is not None else None
+        out = _Out(n, empty=solver is not None)
         if obs.has_v:
             out.res = np.full(n, np.nan)
+        if solver is not None:
+            self._check_sample(obs, use_v_p)
+            xyz = np.empty((3, n))
+            solver(proj, self.planes[0], self.planes[1], obs.a, obs.b, obs.sa, obs.sb,
+                   obs.mask, obs.has_v and use_v_p, obs.swap, W, H,
+                   np.inf if max_residual is None else max_residual,
+                   np.inf if max_sigma_z is None else max_sigma_z, xyz, out.sig,
+                   out.res, out.flags, out.ok)
+            out.xyz = np.moveaxis(xyz.reshape((3,) + self.shape), 0, -1)
+            return self._cloud(out)
         o_full = np.broadcast_to(self.origin, (n, 3))
         d_full = np.broadcast_to(self.direction, (n, 3))
         for lo in range(0, n, _CHUNK):
@@ -272,20 +304,53 @@ class GenericTriangulator:
             sl = slice(lo, hi)
             _solve_chunk(proj, o_full[sl], d_full[sl], self.s_ref[sl], self.step,
                          self.bad[sl], obs, sl, use_v_p, max_residual, max_sigma_z, W, H, out)
-        xyz = out.xyz.reshape(self.shape + (3,))
+        return self._cloud(out)
+
+    def _check_sample(self, obs: _Obs, use_v_p: bool):
+        """The sensitivity check of the reference path on up to 512 valid pixels, at the
+        rig's working depth (the compiled solvers do not make it)."""
+        n = int(np.prod(self.shape))
+        idx = np.arange(0, n, max(1, n // 4096))
+        idx = idx[obs.mask[idx] & np.isfinite(obs.a[idx]) & ~self.bad[idx]]
+        if idx.size == 0:
+            valid = obs.mask & np.isfinite(obs.a) & ~self.bad
+            idx = np.flatnonzero(valid)
+            if idx.size == 0:
+                return
+        idx = idx[np.linspace(0, idx.size - 1, min(idx.size, 512)).astype(np.intp)]
+        o = np.broadcast_to(self.origin, (n, 3))[idx]
+        d = np.broadcast_to(self.direction, (n, 3))[idx]
+        X = o + self.s_ref[idx, None] * d
+        with np.errstate(all="ignore"):
+            _, _, ga, gb, na, nb = _project_slope(self.rig.projector, X, d, obs.swap)
+            combine = obs.has_v and use_v_p
+            ratio = np.hypot(ga, gb) / np.maximum(na, nb) if combine else np.abs(ga) / na
+        _check_sensitivity(ratio[np.isfinite(ratio)], obs, use_v_p)
+
+    def _cloud(self, out: _Out) -> PointCloud:
+        xyz = out.xyz if out.xyz.ndim == 3 else out.xyz.reshape(self.shape + (3,))
         return PointCloud._adopt(xyz, out.ok.reshape(self.shape),
                                  out.sig.reshape(self.shape),
                                  None if out.res is None else out.res.reshape(self.shape),
-                                 out.flags.reshape(self.shape), _readonly(
-                                     np.array(self.directions)))
+                                 out.flags.reshape(self.shape),
+                                 # the triangulator's read-only lines, shared by its clouds
+                                 self.directions)
 
 
 class _Out:
-    def __init__(self, n):
-        self.xyz = np.full((n, 3), np.nan)
-        self.sig = np.full(n, np.nan)
-        self.flags = np.full(n, FLAG_NO_PHASE, dtype=np.uint8)
-        self.ok = np.zeros(n, dtype=bool)
+    """The flat outputs; ``empty``: the compiled solvers write every element."""
+
+    def __init__(self, n, empty=False):
+        if empty:
+            self.xyz = None
+            self.sig = np.empty(n)
+            self.flags = np.empty(n, dtype=np.uint8)
+            self.ok = np.empty(n, dtype=bool)
+        else:
+            self.xyz = np.full((n, 3), np.nan)
+            self.sig = np.full(n, np.nan)
+            self.flags = np.full(n, FLAG_NO_PHASE, dtype=np.uint8)
+            self.ok = np.zeros(n, dtype=bool)
         self.res = None
 
 
@@ -354,8 +419,8 @@ def _check_sensitivity(ratio, obs: _Obs, use_v_p: bool):
 
 
 def _project(proj, X, swap):
-    """The projector's (primary, other) pixels of X (m, 3) and their slopes along ``d``
-    need the Jacobian: see :func:`_project_slope`."""
+    """The projector's (primary, other) pixels of X (m, 3) mm (the slopes too:
+    :func:`_project_slope`)."""
     u, v = proj.project(X)
     return (v, u) if swap else (u, v)
 
@@ -510,8 +575,8 @@ def _round_trip(proj, X, u, v):
 # Cache and public functions
 # --------------------------------------------------------------------------------------
 #: Bytes the per-process cache of :class:`GenericTriangulator` may hold (per-pixel lines of
-#: a pinhole camera: 42 MB for 1280 x 1024).
-GENERIC_CACHE_BYTES = 128 * 2**20
+#: a camera with a pinhole projector: 74 MB for 1280 x 1024).
+GENERIC_CACHE_BYTES = 160 * 2**20
 
 
 class _Cache:
@@ -524,7 +589,9 @@ class _Cache:
 
     @staticmethod
     def _size(t):
-        return int(t.origin.nbytes + t.direction.nbytes + t.s_ref.nbytes + t.bad.nbytes)
+        planes = 0 if t.planes is None else sum(p.nbytes for p in t.planes)
+        own = sum(a.nbytes for a in (t.origin, t.direction) if a.base is None)
+        return int(own + planes + t.s_ref.nbytes + t.bad.nbytes)
 
     def get(self, rig, shape, build):
         key = (id(rig), tuple(shape))
@@ -552,7 +619,7 @@ _CACHE = _Cache(GENERIC_CACHE_BYTES)
 
 def triangulate(rig, coords, *, max_residual: float | None = 1.0,
                 max_sigma_z: float | None = None, use_v_p: bool = True,
-                check_bounds: bool = True) -> PointCloud:
+                check_bounds: bool = True, compiled: bool = True) -> PointCloud:
     """Triangulate decoded projector coordinates with any camera and projector.
 
     Parameters
@@ -575,6 +642,10 @@ def triangulate(rig, coords, *, max_residual: float | None = 1.0,
         Combine ``v_p`` with ``u_p`` (default); when false, ``v_p`` only checks.
     check_bounds : bool, keyword-only
         Flag solutions outside the projector's image (when it declares its size).
+    compiled : bool, keyword-only
+        Use the projector model's compiled solver where there is one (a pinhole
+        projector; the same equations, tolerance and flags, tested against this path);
+        False: the NumPy reference.
 
     Returns
     -------
@@ -603,7 +674,7 @@ def triangulate(rig, coords, *, max_residual: float | None = 1.0,
         raise TriangulationError(f"u_p must be a (rows, cols) array, got shape {shape}")
     tri = _CACHE.get(_as_rig(rig), shape, GenericTriangulator.for_shape)
     return tri.triangulate(coords, max_residual=max_residual, max_sigma_z=max_sigma_z,
-                           use_v_p=use_v_p, check_bounds=check_bounds)
+                           use_v_p=use_v_p, check_bounds=check_bounds, compiled=compiled)
 
 
 @dataclass(frozen=True)
@@ -616,7 +687,7 @@ class _Coords:
 
 
 def triangulate_pixels(rig, u_c, v_c, u_p, v_p=None, *, sigma_u_p=None, sigma_v_p=None,
-                       max_residual: float | None = None) -> PointCloud:
+                       max_residual: float | None = None, compiled: bool = True) -> PointCloud:
     """Triangulate arbitrary (sub-pixel) camera pixels, e.g. marker centres.
 
     Parameters
@@ -627,6 +698,7 @@ def triangulate_pixels(rig, u_c, v_c, u_p, v_p=None, *, sigma_u_p=None, sigma_v_
         None; ``u_p`` may be None when ``v_p`` is given).
     sigma_u_p, sigma_v_p : (n,) array_like or None, their standard uncertainties (px).
     max_residual : float or None, as in :func:`triangulate` (default: no check).
+    compiled : bool, as in :func:`triangulate`.
 
     Returns
     -------
@@ -649,4 +721,5 @@ def triangulate_pixels(rig, u_c, v_c, u_p, v_p=None, *, sigma_u_p=None, sigma_v_
 
     tri = GenericTriangulator.for_pixels(rig, u_c, v_c)
     c = _Coords(row(u_p), row(v_p), None, row(sigma_u_p), row(sigma_v_p))
-    return tri.triangulate(c, max_residual=max_residual, check_bounds=False)
+    return tri.triangulate(c, max_residual=max_residual, check_bounds=False,
+                           compiled=compiled)

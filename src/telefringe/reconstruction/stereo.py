@@ -25,8 +25,10 @@ converged).
 Flags (``PointCloud.flags``): ``FLAG_NO_PHASE`` no valid phase in the first camera or no
 valid neighbourhood in the second at the match; ``FLAG_OUTSIDE`` no crossing within the
 search range inside the second camera's image (occluded or out of its view);
-``FLAG_INCONSISTENT`` more than one crossing (the data cannot decide) or, with both axes, a
-mismatch of the projector pixel above ``max_residual``; ``FLAG_NOT_CONVERGED``;
+``FLAG_INCONSISTENT`` more than one crossing (the data cannot decide), a match in a cell
+of the second camera across a jump of its phase (an occlusion edge: more than 5 times the
+map's median cell range) or, with both axes, a mismatch of the projector pixel above
+``max_residual``; ``FLAG_NOT_CONVERGED``;
 ``FLAG_UNCERTAIN`` sigma_z above ``max_sigma_z``.
 
 Uncertainty: the match solves ``u_P2(s) = u_P1``; both decoded values are noisy, so
@@ -63,7 +65,7 @@ _CHUNK = 4096
 _TOL_F = 1e-9  # projector px
 _MAX_ITER = 60
 _GAP_TOL = 1e-6  # mm, the two rays' distance at the match
-_SAMPLE_PX = 6.0  # spacing of the bracketing samples in the second camera, px
+_SAMPLE_PX = 16.0  # spacing of the bracketing samples in the second camera, px
 
 
 @dataclass(frozen=True, eq=False)
@@ -255,6 +257,7 @@ def match_stereo(rig, coords_1, coords_2, *, max_residual: float | None = 1.0,
     out_v2 = np.full(n, np.nan)
     A1, S1 = (x.reshape(-1) if x is not None else None for x in m1[primary])
     A2, S2 = m2[primary]
+    jump = _jump_threshold(A2)
     if other is not None:
         B1, T1 = (x.reshape(-1) if x is not None else None for x in m1[other])
         B2, T2 = m2[other]
@@ -399,6 +402,10 @@ def match_stereo(rig, coords_1, coords_2, *, max_residual: float | None = 1.0,
             ok_gap = ~bad2 & (gap <= _GAP_TOL)
             f |= np.where(ok_gap, 0, FLAG_NOT_CONVERGED).astype(np.uint8)
             f |= np.where(np.isfinite(va), 0, FLAG_NO_PHASE).astype(np.uint8)
+            # a cell of the second camera across a jump of the phase (an occlusion edge:
+            # two surfaces in one cell) interpolates a phase no surface has
+            f |= np.where(_cell_range(A2, corners) <= jump, 0, FLAG_INCONSISTENT).astype(
+                np.uint8)
             if max_sigma_z is not None:
                 f |= np.where(sg * np.abs(dd_s[:, 2]) > max_sigma_z, FLAG_UNCERTAIN,
                               0).astype(np.uint8)
@@ -417,6 +424,22 @@ def match_stereo(rig, coords_1, coords_2, *, max_residual: float | None = 1.0,
                               None if out_res is None else out_res.reshape(shp),
                               out_flags.reshape(shp), _readonly(dirs))
     return StereoMatch(cloud, _readonly(out_u2.reshape(shp)), _readonly(out_v2.reshape(shp)))
+
+
+def _jump_threshold(M):
+    """The largest phase range (projector px) a 2 x 2 cell of the map M may hold: 5 times
+    the median of |horizontal| + |vertical| neighbour differences (a smooth surface's
+    cells hold about that median; one across an occlusion edge holds the jump)."""
+    gx = np.abs(np.diff(M, axis=1))[:-1]
+    gy = np.abs(np.diff(M, axis=0))[:, :-1]
+    g = (gx + gy)[np.isfinite(gx + gy)]
+    return 5.0 * float(np.median(g)) if g.size else np.inf
+
+
+def _cell_range(M, corners):
+    i, j, _, _ = corners
+    c = np.stack([M[i, j], M[i, j + 1], M[i + 1, j], M[i + 1, j + 1]])
+    return c.max(axis=0) - c.min(axis=0)
 
 
 def _var_of(S, gi):

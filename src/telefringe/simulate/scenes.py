@@ -33,6 +33,8 @@ __all__ = [
     "BGA",
     "TiltedPlane",
     "HeightField",
+    "FreeSpheres",
+    "RectPlate",
     "plate_at_z",
     "plate_from_target",
     "default_steps",
@@ -573,6 +575,144 @@ class HeightField:
     def features(self) -> dict:
         return {"type": "height-field", "pixel_size_mm": float(self.pixel_size),
                 "origin_world": self.origin.copy(), "z": self.z.copy()}
+
+
+# --------------------------------------------------------------------------- acceptance artefacts
+@dataclass(frozen=True, eq=False)
+class FreeSpheres:
+    """Matte spheres with nothing behind them: the test sphere (one) or the two spheres
+    of a ball bar, as in an acceptance test (VDI/VDE 2634 Part 2). Part k is sphere k.
+
+    The stands and the ball bar's rod are not modelled: pixels beside the spheres see
+    nothing (no light returns), so each sphere is its own region of the image. Spheres
+    may shadow each other.
+
+    Attributes
+    ----------
+    centres : (n, 3) mm, world.   radii : (n,) mm.   albedo : float.
+    """
+
+    centres: np.ndarray = field(default_factory=lambda: np.array([[15.0, 12.0, 0.0]]))
+    radii: np.ndarray = field(default_factory=lambda: np.array([3.0]))
+    albedo: float = 0.8
+
+    def __post_init__(self):
+        c = np.array(self.centres, dtype=float).reshape(-1, 3)
+        r = np.array(self.radii, dtype=float).reshape(-1)
+        if r.shape != (c.shape[0],) or c.shape[0] < 1:
+            raise ValueError("need one radius per centre, and at least one sphere")
+        if not np.all(r > 0):
+            raise ValueError("radii must be > 0")
+        object.__setattr__(self, "centres", _frozen_array(c, c.shape, "centres"))
+        object.__setattr__(self, "radii", _frozen_array(r, r.shape, "radii"))
+
+    def intersect(self, origins, direction) -> Hits:
+        o, d = _check_rays(origins, direction)
+        n = o.shape[0]
+        dd = np.broadcast_to(d, o.shape)  # one direction per ray (parallel rays share it)
+        t = np.full(n, np.inf)
+        part = np.full(n, -1, dtype=np.int32)
+        for k, (c, r) in enumerate(zip(self.centres, self.radii, strict=True)):
+            oc = o - c
+            b = np.einsum("ij,ij->i", oc, dd)
+            disc = b * b - (np.einsum("ij,ij->i", oc, oc) - r * r)
+            with np.errstate(invalid="ignore"):
+                tk = -b - np.sqrt(np.where(disc >= 0, disc, np.nan))
+            closer = np.isfinite(tk) & (tk > 0) & (tk < t)
+            t[closer] = tk[closer]
+            part[closer] = k
+        hit = part >= 0
+        normal = np.zeros((n, 3))
+        if hit.any():
+            p = o[hit] + t[hit, None] * dd[hit]
+            nrm = (p - self.centres[part[hit]]) / self.radii[part[hit], None]
+            # facing the incoming ray
+            normal[hit] = nrm * np.where(np.einsum("ij,ij->i", nrm, dd[hit]) > 0, -1.0,
+                                         1.0)[:, None]
+        return Hits(t=t, normal=normal, albedo=np.where(hit, float(self.albedo), 0.0),
+                    specular=np.zeros(n), part=part)
+
+    def z_range(self) -> tuple[float, float]:
+        return (float(np.min(self.centres[:, 2] - self.radii)),
+                float(np.max(self.centres[:, 2] + self.radii)))
+
+    def features(self) -> dict:
+        f = {"type": "free-spheres", "centres_world": self.centres.copy(),
+             "radii_mm": self.radii.copy()}
+        if len(self.radii) == 2:
+            f["centre_distance_mm"] = float(np.linalg.norm(self.centres[1] - self.centres[0]))
+        return f
+
+
+@dataclass(frozen=True, eq=False)
+class RectPlate:
+    """A flat matte rectangle with nothing behind it (the flatness standard of an
+    acceptance test). Part 0.
+
+    In its own frame the plate is ``|x| <= length / 2``, ``|y| <= width / 2``, ``z = 0``;
+    ``R_world_scene`` (3, 3) turns that frame into the world and ``t_world_scene`` (3,)
+    (mm) is the plate's centre. The plate is ideally flat and has no thickness (its
+    edges are not seen).
+    """
+
+    length: float = 20.0
+    width: float = 8.0
+    R_world_scene: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t_world_scene: np.ndarray = field(default_factory=lambda: np.array([15.0, 12.0, 0.0]))
+    albedo: float = 0.8
+
+    def __post_init__(self):
+        if not (self.length > 0 and self.width > 0):
+            raise ValueError("length and width must be > 0")
+        object.__setattr__(self, "R_world_scene",
+                           _check_rotation(self.R_world_scene, "R_world_scene"))
+        object.__setattr__(self, "t_world_scene",
+                           _frozen_array(self.t_world_scene, (3,), "t_world_scene"))
+
+    @property
+    def normal(self) -> np.ndarray:
+        """(3,) unit normal, world, with a non-negative z component."""
+        n = self.R_world_scene[:, 2]
+        return n if n[2] >= 0 else -n
+
+    def corners(self) -> np.ndarray:
+        """(4, 3) corners, world mm."""
+        a, b = self.length / 2, self.width / 2
+        loc = np.array([[-a, -b, 0.0], [a, -b, 0.0], [a, b, 0.0], [-a, b, 0.0]])
+        return loc @ self.R_world_scene.T + self.t_world_scene
+
+    def intersect(self, origins, direction) -> Hits:
+        o, d = _check_rays(origins, direction)
+        n_rays = o.shape[0]
+        R, c = self.R_world_scene, self.t_world_scene
+        nz = R[:, 2]
+        dd = np.broadcast_to(d, o.shape)  # one direction per ray (parallel rays share it)
+        den = dd @ nz
+        t = np.full(n_rays, np.inf)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tt = np.where(np.abs(den) > 1e-12, ((c - o) @ nz) / np.where(den == 0, 1.0, den),
+                          np.nan)
+            q = (o + tt[:, None] * dd - c) @ R[:, :2]
+            ok = (np.isfinite(tt) & (tt > 0) & (np.abs(q[:, 0]) <= self.length / 2)
+                  & (np.abs(q[:, 1]) <= self.width / 2))
+        t[ok] = tt[ok]
+        hit = np.isfinite(t)
+        facing = np.where(den > 0, -1.0, 1.0)[:, None] * nz
+        normal = np.where(hit[:, None], facing, 0.0)
+        return Hits(t=t, normal=normal, albedo=np.where(hit, float(self.albedo), 0.0),
+                    specular=np.zeros(n_rays), part=np.where(hit, 0, -1).astype(np.int32))
+
+    def z_range(self) -> tuple[float, float]:
+        z = self.corners()[:, 2]
+        return float(z.min()), float(z.max())
+
+    def features(self) -> dict:
+        n = self.normal
+        return {"type": "rect-plate", "length_mm": float(self.length),
+                "width_mm": float(self.width), "R_world_scene": self.R_world_scene.copy(),
+                "t_world_scene": self.t_world_scene.copy(), "plane_normal": n.copy(),
+                "plane_offset_mm": float(n @ self.t_world_scene),
+                "corners_world": self.corners()}
 
 
 # --------------------------------------------------------------------------- by name

@@ -1,0 +1,174 @@
+"""`telefringe accept`: the acceptance test of VDI/VDE 2634 Part 2 (PF, PS, SD, F) on an
+acceptance set (scans of a test sphere, a ball bar and a plane at several positions)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from telefringe.cli._common import console, detail, info, progress_bar, state
+
+__all__ = ["register", "parse_mpe"]
+
+
+def parse_mpe(text: str | None) -> dict:
+    """``"PF=0.01,PS=0.008,SD=0.012,F=0.01"`` (mm) -> ``{"PF": 0.01, ...}``; any subset.
+
+    >>> parse_mpe("PF=0.01, SD=0.012")
+    {'PF': 0.01, 'SD': 0.012}
+    """
+    from telefringe.io.errors import InputError
+    from telefringe.metrology.acceptance import QUANTITIES
+
+    if text is None or not text.strip():
+        return {}
+    out = {}
+    for part in text.split(","):
+        key, sep, val = part.partition("=")
+        key = key.strip()
+        try:
+            v = float(val)
+        except ValueError:
+            v = float("nan")
+        if not sep or key not in QUANTITIES or not (v > 0 and v < float("inf")):
+            raise InputError(f"--mpe: {part.strip()!r} is not NAME=mm with NAME one of "
+                             f"{', '.join(QUANTITIES)} and a positive number (mm), e.g. "
+                             "--mpe PF=0.01,PS=0.01,SD=0.015,F=0.01")
+        if key in out:
+            raise InputError(f"--mpe: {key} given twice")
+        out[key] = v
+    return out
+
+
+def _table(result):
+    from rich.table import Table
+
+    t = Table(title="VDI/VDE 2634-2 acceptance test (mm; U: expanded uncertainty of the "
+                    "test, k = 2)")
+    for col in ("characteristic", "position", "value", "U", "cap half-angle", "decision"):
+        t.add_column(col, justify="left" if col in ("characteristic", "position") else "right")
+    by_name = {p.name: p for p in result.positions}
+    for q, qr in result.quantities.items():
+        for k, name in enumerate(qr.positions):
+            test = by_name[name].test
+            if q in ("PF", "PS"):
+                cap = f"{test.cap_half_angle_deg:.0f} deg"
+            elif q == "SD":
+                cap = " / ".join(f"{s.cap_half_angle_deg:.0f}" for s in test.spheres) + " deg"
+            else:
+                cap = ""
+            t.add_row(q if k == 0 else "", name, f"{qr.values[k]:+.4f}", f"{qr.U[k]:.4f}", cap,
+                      qr.decisions[k] if qr.decisions else "")
+        mpe = f"MPE {qr.mpe:.4f}" if qr.mpe is not None else "no MPE"
+        t.add_row("", f"[bold]max ({qr.max_position})[/bold]", f"[bold]{qr.max_value:+.4f}",
+                  mpe, "", f"[bold]{qr.verdict}" if qr.verdict else "", end_section=True)
+    return t
+
+
+def accept_cmd(
+    folder: Path = typer.Argument(..., help="Acceptance set: a folder with acceptance.json "
+                                            "and one scan folder per position."),
+    rig: Path = typer.Option(..., "--rig", help="rig.json written by 'telefringe calibrate'."),
+    artefacts: Path = typer.Option(..., "--artefacts",
+                                   help="artefacts.json: the artefacts' calibrated values."),
+    mpe: str = typer.Option(None, "--mpe",
+                            help="Maximum permissible errors in mm, e.g. "
+                                 "PF=0.01,PS=0.01,SD=0.015,F=0.01 (any subset)."),
+    json_out: Path = typer.Option(None, "--json", help="Write the result as JSON."),
+    figure: Path = typer.Option(None, "--figure",
+                                help="Write the page of plots (residual maps per position)."),
+    edge_px: int = typer.Option(2, "--edge-px",
+                                help="Pixels left out along each artefact's border in the "
+                                     "image (the camera's blur mixes it with the "
+                                     "background there)."),
+    gamma: bool = typer.Option(True, "--gamma-correction/--no-gamma-correction",
+                               help="Remove the projector nonlinearity (the rig's model, "
+                                    "else learned from each scan), as 'reconstruct' does."),
+    force: bool = typer.Option(False, "--force", help="Replace existing outputs."),
+):
+    """Run the VDI/VDE 2634 Part 2 acceptance test on scans of its artefacts.
+
+    Reconstructs every scan listed in FOLDER/acceptance.json with the rig and measures:
+    PF (range of the radial residuals of a free-radius least-squares sphere, after
+    excluding the 0.3 % largest) and PS (measured minus calibrated diameter) on the test
+    sphere, SD (measured minus calibrated centre distance) on the ball bar, F (range of
+    the distances to the least-squares plane, same exclusion) on the plane, at each
+    position, and their maxima; with --mpe, PASS / FAIL / UNDECIDED by ISO 14253-1 guard
+    bands of the test's expanded uncertainty. The cap of every sphere seen is reported (a
+    single view sees a cap, which makes PS less certain). See docs/acceptance.md.
+
+    Example: telefringe accept acc/acceptance --rig rig.json --artefacts acc/artefacts.json
+
+    (acc from 'telefringe simulate acceptance acc', rig.json from calibrating the same
+    virtual rig; add --mpe PF=0.02,PS=0.02,SD=0.02,F=0.03 --json result.json for a verdict
+    and a file.)
+    """
+    from telefringe.fringes.decode import DecodeError
+    from telefringe.fringes.phase import PhaseInputError
+    from telefringe.io.acceptance_json import (
+        load_acceptance_set,
+        load_artefacts,
+        result_to_json,
+    )
+    from telefringe.io.atomic import check_can_write
+    from telefringe.io.errors import InputError
+    from telefringe.io.jsonable import write_json
+    from telefringe.io.rig_json import load_rig
+    from telefringe.io.scan_json import read_scan
+    from telefringe.metrology._common import MetrologyError
+    from telefringe.metrology.acceptance import evaluate_position, summarize
+    from telefringe.reconstruction.cloud import TriangulationError
+    from telefringe.reconstruction.pipeline import reconstruct_scan
+
+    limits = parse_mpe(mpe)
+    if not 0 <= edge_px <= 20:
+        raise InputError(f"--edge-px must be between 0 and 20, got {edge_px}")
+    for p in (json_out, figure):
+        if p is not None:
+            check_can_write(p, force=force)
+    scans = load_acceptance_set(folder)
+    cert = load_artefacts(artefacts)
+    rig_obj = load_rig(rig)
+    kinds = {a for _, a, _ in scans}
+    missing = {"sphere", "ball_bar", "plane"} - kinds
+    if missing:
+        info(f"[yellow]warning:[/yellow] no scan of the {', '.join(sorted(missing))}: "
+             "its characteristics are not tested")
+    positions = []
+    with progress_bar(f"measuring {len(scans)} positions", len(scans)) as advance:
+        for name, kind, desc in scans:
+            scan = read_scan(Path(folder) / name)
+            try:
+                rec = reconstruct_scan(scan, rig_obj, with_height_map=False,
+                                       gamma_correction=gamma)
+                pos = evaluate_position(name, kind, rec.cloud.xyz, rec.cloud.mask, cert,
+                                        erode_px=edge_px)
+            except (DecodeError, PhaseInputError, TriangulationError, MetrologyError) as exc:
+                raise InputError(f"{Path(folder) / name}: {exc}") from None
+            positions.append(pos)
+            detail(f"{name} ({kind}{', ' + desc if desc else ''}): "
+                   f"{rec.cloud.count} points")
+            advance()
+    result = summarize(positions, cert, limits)
+    if not state.quiet:
+        console.print(_table(result))
+    for q, qr in result.quantities.items():
+        info(f"{q}: max {qr.max_value * 1000:+.2f} um at {qr.max_position}"
+             + (f", MPE {qr.mpe * 1000:.2f} um: {qr.verdict}" if qr.mpe is not None else ""))
+    if result.verdict:
+        info(f"verdict: {result.verdict} (ISO 14253-1 guard bands of U, k = 2)")
+    if json_out is not None:
+        write_json(json_out, result_to_json(result, rig=str(rig), folder=str(folder)),
+                   force=force)
+        info(f"wrote {json_out}")
+    if figure is not None:
+        from telefringe.io.figures.acceptance import write_acceptance_figure
+
+        write_acceptance_figure(figure, result, title=Path(folder).name, force=force)
+        info(f"wrote {figure}")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``accept`` to the app."""
+    app.command("accept")(accept_cmd)

@@ -1,0 +1,276 @@
+"""The acceptance test over all positions: the artefacts' certificate, the points of each
+artefact in a scan, the characteristics per position, their maxima and the decisions."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from telefringe.metrology._common import MetrologyError, _components
+from telefringe.metrology.acceptance.decision import DECISION_RULE, combine, decide
+from telefringe.metrology.acceptance.quantities import (
+    EXCLUDED_FRACTION,
+    FlatnessTest,
+    SpacingTest,
+    SphereTest,
+    flatness_error,
+    probing_errors,
+    sphere_spacing_error,
+)
+
+__all__ = ["ARTEFACT_KINDS", "EDGE_PX", "QUANTITIES", "Artefacts", "Position", "QuantityResult",
+           "AcceptanceResult", "artefact_regions", "evaluate_position", "summarize"]
+
+#: The artefacts of the test, as named in acceptance.json.
+ARTEFACT_KINDS = ("sphere", "ball_bar", "plane")
+#: The characteristics, in the order reported, and the artefact each is measured on.
+QUANTITIES = {"PF": "sphere", "PS": "sphere", "SD": "ball_bar", "F": "plane"}
+
+
+@dataclass(frozen=True)
+class Artefacts:
+    """The artefacts' certificate (calibrated values and standard uncertainties, mm).
+
+    Attributes
+    ----------
+    sphere_diameter, u_sphere_diameter : the test sphere's diameter.
+    sphere_form, u_sphere_form : its form deviation (peak to valley).
+    bar_distance, u_bar_distance : the ball bar's centre distance.
+    bar_diameters : (2,) its spheres' diameters (their PS is reported, not tested).
+    plane_flatness, u_plane_flatness : the plane's flatness deviation.
+    plane_length, plane_width : its size (information).
+    """
+
+    sphere_diameter: float
+    u_sphere_diameter: float
+    sphere_form: float
+    u_sphere_form: float
+    bar_distance: float
+    u_bar_distance: float
+    bar_diameters: tuple[float, float]
+    plane_flatness: float
+    u_plane_flatness: float
+    plane_length: float = float("nan")
+    plane_width: float = float("nan")
+
+    def u_of(self, quantity: str) -> float:
+        """Standard uncertainty (mm) the artefact adds to ``quantity``'s test value: its
+        calibration's u, and for the form characteristics its own form deviation F_a as a
+        rectangular distribution over [0, F_a] about its mean (F_a / sqrt(3) around 0),
+        in quadrature."""
+        if quantity == "PF":
+            return float(np.hypot(self.u_sphere_form, self.sphere_form / np.sqrt(3.0)))
+        if quantity == "PS":
+            return float(self.u_sphere_diameter)
+        if quantity == "SD":
+            return float(self.u_bar_distance)
+        if quantity == "F":
+            return float(np.hypot(self.u_plane_flatness, self.plane_flatness / np.sqrt(3.0)))
+        raise KeyError(quantity)
+
+
+@dataclass(frozen=True, eq=False)
+class Position:
+    """One scan of the test: its artefact, what was measured, and where (pixels).
+
+    Attributes
+    ----------
+    name : str, the scan's name.   kind : "sphere", "ball_bar" or "plane".
+    test : SphereTest, SpacingTest or FlatnessTest.
+    pixels : list of (k, 2) int arrays (row, col) of the points of each artefact region
+        (one for a sphere or plane, two for a ball bar), in the order of the fit's points.
+    shape : (rows, cols) of the camera image.
+    """
+
+    name: str
+    kind: str
+    test: SphereTest | SpacingTest | FlatnessTest
+    pixels: list = field(default_factory=list)
+    shape: tuple[int, int] = (0, 0)
+
+    def value(self, quantity: str) -> float:
+        t = self.test
+        return float(getattr(t, quantity))
+
+    def u_fit(self, quantity: str) -> float:
+        """Standard uncertainty (mm) of the value from the fit's own scatter (PS, SD);
+        0 for the ranges PF and F."""
+        if quantity == "PS":
+            return float(self.test.u_fit_diameter)
+        if quantity == "SD":
+            return float(self.test.u_fit_distance)
+        return 0.0
+
+    def residual_map(self) -> np.ndarray:
+        """(rows, cols) mm: each artefact point's residual (radial for spheres, normal
+        for the plane); NaN elsewhere and at excluded points."""
+        out = np.full(self.shape, np.nan)
+        tests = self.test.spheres if isinstance(self.test, SpacingTest) else (self.test,)
+        for t, px in zip(tests, self.pixels, strict=True):
+            kept_px = px[t.kept]
+            res = (t.fit.residuals if isinstance(t, SphereTest)
+                   else t.residuals[t.kept])
+            out[kept_px[:, 0], kept_px[:, 1]] = res
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class QuantityResult:
+    """One characteristic over its positions (mm).
+
+    Attributes
+    ----------
+    name : "PF", "PS", "SD" or "F".
+    positions : names of the scans.   values : (n,) per position.
+    U : (n,) expanded uncertainty (k = 2) of each value as a test value.
+    max_value : the largest value (PF, F) or the value of largest magnitude (PS, SD,
+        sign kept); max_position : its scan.
+    mpe : float or None.   decisions : per position, or () without an MPE.
+    verdict : "PASS", "FAIL", "UNDECIDED" or "" without an MPE.
+    """
+
+    name: str
+    positions: tuple[str, ...]
+    values: np.ndarray
+    U: np.ndarray
+    max_value: float
+    max_position: str
+    mpe: float | None = None
+    decisions: tuple[str, ...] = ()
+    verdict: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class AcceptanceResult:
+    """The whole test: one :class:`QuantityResult` per characteristic, the positions, the
+    exclusion used and the decision rule."""
+
+    quantities: dict
+    positions: tuple[Position, ...]
+    excluded_fraction: float
+    decision_rule: str = DECISION_RULE
+
+    @property
+    def verdict(self) -> str:
+        """Over all characteristics that have an MPE ("" when none has)."""
+        v = [q.verdict for q in self.quantities.values() if q.verdict]
+        return combine(v) if v else ""
+
+
+#: Pixels taken off the border of every artefact region by default (see
+#: :func:`evaluate_position`).
+EDGE_PX = 2
+
+
+def artefact_regions(mask, count: int, *, erode_px: int = EDGE_PX, min_pixels: int = 20):
+    """The ``count`` largest connected regions (8-neighbourhood) of valid pixels, each
+    shrunk by ``erode_px`` pixels (silhouette pixels mix the artefact with what lies
+    behind it), ordered by their mean column (left to right).
+
+    Parameters
+    ----------
+    mask : (rows, cols) bool, the pixels with a valid point.
+    count : 1 (sphere, plane) or 2 (ball bar).
+
+    Returns
+    -------
+    list of (rows, cols) bool
+
+    Raises
+    ------
+    MetrologyError
+        Fewer than ``count`` regions of at least ``min_pixels`` pixels.
+    """
+    from scipy import ndimage
+
+    labels, n = _components(np.asarray(mask, dtype=bool))
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    order = np.argsort(sizes)[::-1][:count]
+    regions = []
+    for k in order:
+        r = labels == (k + 1)
+        if erode_px > 0:
+            r = ndimage.binary_erosion(r, iterations=int(erode_px))
+        if r.sum() >= min_pixels:
+            regions.append(r)
+    if len(regions) < count:
+        raise MetrologyError(f"{count} artefact region(s) of at least {min_pixels} pixels "
+                             f"needed, found {len(regions)}")
+    return sorted(regions, key=lambda r: float(np.nonzero(r)[1].mean()))
+
+
+def evaluate_position(name: str, kind: str, xyz, mask, artefacts: Artefacts, *,
+                      exclude: float = EXCLUDED_FRACTION, erode_px: int = EDGE_PX) -> Position:
+    """The characteristics of one scan.
+
+    Parameters
+    ----------
+    name : the scan's name.   kind : "sphere", "ball_bar" or "plane".
+    xyz : (rows, cols, 3) mm, the scan's points per camera pixel.
+    mask : (rows, cols) bool, valid points.
+    artefacts : the certificate.
+    exclude : share of points that may be excluded (0.3 %).
+    erode_px : pixels taken off each region's border: there the camera's blur mixes the
+        artefact with what lies behind it (on the virtual rigs a 1-pixel border left
+        outliers of 100 um in F and a PS bias of +37 um, 2 pixels none; docs/acceptance.md).
+
+    Returns
+    -------
+    Position
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    mask = np.asarray(mask, dtype=bool) & np.all(np.isfinite(xyz), axis=-1)
+    if kind not in ARTEFACT_KINDS:
+        raise MetrologyError(f"unknown artefact {kind!r} (known: {', '.join(ARTEFACT_KINDS)})")
+    regions = artefact_regions(mask, 2 if kind == "ball_bar" else 1, erode_px=erode_px)
+    pixels = [np.argwhere(r) for r in regions]
+    pts = [xyz[px[:, 0], px[:, 1]] for px in pixels]
+    if kind == "sphere":
+        test = probing_errors(pts[0], artefacts.sphere_diameter, exclude=exclude)
+    elif kind == "ball_bar":
+        test = sphere_spacing_error(pts[0], pts[1], artefacts.bar_distance,
+                                    artefacts.bar_diameters, exclude=exclude)
+    else:
+        test = flatness_error(pts[0], exclude=exclude)
+    return Position(name=name, kind=kind, test=test, pixels=pixels, shape=mask.shape)
+
+
+def summarize(positions, artefacts: Artefacts, mpe: dict | None = None, *,
+              exclude: float = EXCLUDED_FRACTION) -> AcceptanceResult:
+    """Per characteristic: the values at every position of its artefact, their maximum,
+    the test uncertainty of each (artefact certificate and fit, k = 2) and, with an MPE,
+    the decisions (:data:`~telefringe.metrology.acceptance.decision.DECISION_RULE`).
+
+    Parameters
+    ----------
+    positions : sequence of Position.
+    artefacts : Artefacts.
+    mpe : {"PF": mm, "PS": mm, "SD": mm, "F": mm}, any subset, or None.
+
+    Returns
+    -------
+    AcceptanceResult
+    """
+    mpe = dict(mpe or {})
+    bad = set(mpe) - set(QUANTITIES)
+    if bad:
+        raise ValueError(f"unknown MPE {sorted(bad)} (known: {', '.join(QUANTITIES)})")
+    out = {}
+    for q, kind in QUANTITIES.items():
+        pos = [p for p in positions if p.kind == kind]
+        if not pos:
+            continue
+        vals = np.array([p.value(q) for p in pos])
+        U = 2.0 * np.hypot(artefacts.u_of(q), np.array([p.u_fit(q) for p in pos]))
+        i = int(np.argmax(np.abs(vals)))
+        decisions, verdict, m = (), "", mpe.get(q)
+        if m is not None:
+            decisions = tuple(decide(v, u, m) for v, u in zip(vals, U, strict=True))
+            verdict = combine(decisions)
+        out[q] = QuantityResult(name=q, positions=tuple(p.name for p in pos), values=vals,
+                                U=U, max_value=float(vals[i]), max_position=pos[i].name,
+                                mpe=None if m is None else float(m), decisions=decisions,
+                                verdict=verdict)
+    return AcceptanceResult(quantities=out, positions=tuple(positions),
+                            excluded_fraction=float(exclude))
