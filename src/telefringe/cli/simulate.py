@@ -225,6 +225,9 @@ def acceptance(
     from telefringe.io.errors import InputError
 
     vrig = get_preset(rig.value)
+    if len(vrig.camera_names) > 1:
+        raise InputError(f"--rig {rig.value}: acceptance scans of a two-camera rig are not "
+                         "simulated (one camera and a projector: paper, fast, mixed, macro)")
     try:
         vol = measuring_volume(vrig)
         art, positions = acceptance_positions(vrig, vol)
