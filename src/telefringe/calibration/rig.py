@@ -292,16 +292,20 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
         names ``camera`` (first), optionally ``camera_2``, optionally ``projector``.
     models, pixel_sizes, image_sizes : mappings by device name (model "telecentric" or
         "pinhole"; pixel size (du, dv) mm, None for a pinhole device; (width, height) px).
-    marker_radius : float, mm, the radius of the target's circles, or None. Given, and a
-        camera sees depth (a pinhole camera), the perspective eccentricity of the circle
-        centres is corrected: the centre of a circle's image (what a detector measures)
-        is not the image of its centre. The observations are corrected with the current
-        estimate (each camera's by the centre of its own image of the circle; the
-        projector's, read through the first camera's phase at that camera's image
-        centre, by the projector's image of the plate point seen there) and the
-        adjustment repeated (twice). Residuals are then those of the corrected
-        observations. A telecentric camera's images of circles are centred (an affine map
-        keeps centres), so no correction is made for it.
+    marker_radius : float, mm, the radius of the target's circles, or None. Given, the
+        bias of the circle centres is corrected: the centre of a circle's image (what a
+        detector measures) is not the image of its centre, through perspective (the
+        eccentricity of a pinhole camera) and through the curvature of lens distortion
+        (any model: a distorted circle's image is not an ellipse about the projected
+        centre; under radial distortion x (1 + k1 r^2) a disc's image centroid moves
+        by 3 k1 rho^2 times its distance from the axis, rho the circle's radius on the
+        sensor: a magnification error, 2.6e-5 on the fast rig's camera). With the current estimate
+        each camera's observations are corrected by the centre of its own (full-model)
+        image of the circle minus the image of the centre, and the projector's, read
+        through the first camera's phase at that camera's image centre, by the
+        projector's image of the plate point seen there minus that of the centre; the
+        adjustment is then repeated (twice). Residuals are those of the corrected
+        observations. None: no correction.
     Others : as :func:`calibrate_rig`.
 
     Returns
@@ -419,10 +423,9 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
         build, [obs[d] for d in names_d], [poses] * len(names_d),
         threshold=outlier_threshold, max_rounds=max_rounds, names=list(names_d),
         pose_names=names, grid_shape=grid_shape)
-    if marker_radius is not None and any(
-            dev.sees_depth for d, dev in zip(names_d, devs0, strict=True) if d != "projector"):
-        # perspective eccentricity: a circle's image centre is not the image of its
-        # centre; correct the observations with the current estimate and adjust again
+    if marker_radius is not None:
+        # a circle's image centre is not the image of its centre (perspective, lens
+        # distortion); correct the observations with the current estimate, adjust again
         for _ in range(2):
             shift = _eccentricity(problem, x, names_d, poses, shape, float(marker_radius))
             fixed = [obs[d] - shift[k] for k, d in enumerate(names_d)]
@@ -522,7 +525,7 @@ def _circle_image_centre(dev, R, T, centres_target, radius, n: int = 64):
 
 def _eccentricity(problem: BundleProblem, x, names_d, poses, shape, radius):
     """Per device (n_poses, n_points, 2) px: observed centre minus image of the centre,
-    predicted at ``x`` (zero for unused poses and for telecentric cameras)."""
+    predicted at ``x`` with each device's full model (zero for unused poses)."""
     devs, R_wt, T_wt = problem.unpack(x)
     n_u = len(poses)
     P = problem.P
@@ -538,7 +541,7 @@ def _eccentricity(problem: BundleProblem, x, names_d, poses, shape, radius):
     for k, d in enumerate(names_d):
         dev = devs[k]
         shift = np.zeros((len(pt_idx), 2))
-        if d != "projector" and dev.sees_depth:
+        if d != "projector":
             c = _circle_image_centre(dev, R, T, P[pt_idx], radius)
             shift = c - np.stack(dev.project(Xc), axis=1)
             if k == 0:

@@ -1,0 +1,121 @@
+"""The circle-centre bias of rendered calibrations, with and without its correction.
+
+For each seed the ``fast`` rig's calibration set (random poses and noise, as
+benchmarks/uncertainty.py draws them) is rendered once and its observations (the detected
+circle centres and the projector coordinates read there) are cached as a pickle in
+``--cache`` (default ``$TMPDIR/telefringe-centre-bias``). Each set is then calibrated twice:
+without the centre correction (``marker_radius=None``) and with it (the target's radius:
+the centres corrected with the current estimate through each device's full model, the
+adjustment repeated). Printed per seed and as a mean: the camera magnification's error
+against the true rig in units of its predicted standard deviation, and the reprojection
+RMS of camera and projector.
+
+    .venv/bin/python benchmarks/centre_bias.py [--seeds 4] [--poses 6] [--preset fast]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pickle
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+DECODE = {"gamma_correction": False}
+
+
+class _Captured(Exception):
+    pass
+
+
+def observations(vrig, preset: str, seed: int, n_poses: int, cache: Path):
+    """(args, kwargs) of the calibrate_devices call calibrate_from_scans makes, cached."""
+    path = cache / f"obs_{preset}_p{n_poses}_s{seed:03d}.pkl"
+    if path.exists():
+        return pickle.loads(path.read_bytes())
+    import telefringe.calibration.from_scans as fs
+    from telefringe.simulate.calibration import (
+        calibration_manifest,
+        iter_calibration_set,
+        simulate_calibration_poses,
+    )
+
+    poses = simulate_calibration_poses(vrig, n_poses=n_poses, seed=seed)
+    man = calibration_manifest(vrig, poses)
+    got = {}
+
+    def capture(*args, **kwargs):
+        got["call"] = (args, kwargs)
+        raise _Captured
+
+    orig = fs.calibrate_devices
+    fs.calibrate_devices = capture
+    try:
+        scans = ((name, scan) for name, scan, _, _ in
+                 iter_calibration_set(vrig, poses, seed=1000 + seed))
+        fs.calibrate_from_scans(scans, man.target, man.camera_pixel_size,
+                                man.projector_pixel_size, man.reference_pose,
+                                projector_side="right", decode_options=DECODE)
+    except _Captured:
+        pass
+    finally:
+        fs.calibrate_devices = orig
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_bytes(pickle.dumps(got["call"]))
+    tmp.replace(path)
+    return got["call"]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", type=int, default=4)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--poses", type=int, default=6)
+    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--cache", type=Path, default=Path(
+        os.environ.get("TMPDIR", tempfile.gettempdir())) / "telefringe-centre-bias")
+    ap.add_argument("--render-only", action="store_true")
+    a = ap.parse_args(argv)
+    from telefringe.calibration.rig import calibrate_devices
+    from telefringe.simulate.presets import get_preset
+
+    vrig = get_preset(a.preset)
+    m_true = vrig.rig.camera.intrinsics.m
+    rows = {False: [], True: []}
+    for s in range(a.first_seed, a.first_seed + a.seeds):
+        t0 = time.process_time()
+        args, kwargs = observations(vrig, a.preset, s, a.poses, a.cache)
+        print(f"seed {s}: observations ({time.process_time() - t0:.0f} s CPU)", flush=True)
+        if a.render_only:
+            continue
+        for corr in (False, True):
+            kw = dict(kwargs)
+            if not corr:
+                kw["marker_radius"] = None
+            t0 = time.process_time()
+            cal = calibrate_devices(*args, **kw)
+            z = (cal.camera.intrinsics.m - m_true) / cal.std_of("camera.m")
+            rows[corr].append((z, (cal.camera.intrinsics.m / m_true - 1),
+                               cal.rms_camera, cal.rms_projector))
+            print(f"  {'corrected  ' if corr else 'uncorrected'}: m error {z:+.2f} sigma "
+                  f"({rows[corr][-1][1]:+.2e} rel), rms {cal.rms_camera:.4f} / "
+                  f"{cal.rms_projector:.4f} px ({time.process_time() - t0:.0f} s CPU)",
+                  flush=True)
+    for corr in (False, True):
+        if rows[corr]:
+            r = np.array(rows[corr])
+            sd = r[:, 0].std(ddof=1) if len(r) > 1 else 0.0
+            print(f"{'corrected  ' if corr else 'uncorrected'} over {len(r)} seeds: m error "
+                  f"mean {r[:, 0].mean():+.2f} sigma (sd {sd:.2f}),"
+                  f" mean {r[:, 1].mean():+.2e} rel; rms camera {r[:, 2].mean():.4f} px, "
+                  f"projector {r[:, 3].mean():.4f} px")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
