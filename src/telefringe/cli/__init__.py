@@ -57,6 +57,7 @@ def _flags_show_no_type() -> None:
 def _register_all():
     from telefringe.cli import (
         accept,
+        batch,
         calibrate,
         capture,
         decode,
@@ -74,6 +75,7 @@ def _register_all():
         mod.register(app)
     rig_cli.register(app)
     capture.register(app)
+    batch.register(app)
     # one-line summaries in `telefringe --help`: the first paragraph of each docstring,
     # its hard line breaks joined
     for cmd in app.registered_commands:

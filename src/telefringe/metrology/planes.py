@@ -113,34 +113,26 @@ def _tls_plane(P: np.ndarray, w: np.ndarray):
     return n, c, evals
 
 
-def _plane_from_3(p3: np.ndarray):
-    n = np.cross(p3[1] - p3[0], p3[2] - p3[0])
-    nn = np.linalg.norm(n)
-    if nn < 1e-12 * max(1.0, float(np.max(np.abs(p3)))) ** 2:
-        return None
-    n = n / nn
-    return n, float(n @ p3[0])
-
-
 def _lmeds_plane(p: np.ndarray, rng: np.random.Generator, *, trials: int = 300,
                  max_points: int = 20000):
-    """Least-median-of-squares plane from random triples (breakdown 50 %)."""
+    """Least-median-of-squares plane from random triples (breakdown 50 %); the trials'
+    medians in a compiled, parallel loop
+    (:func:`telefringe.metrology._fit_kernels.lmeds_trials`), the first best one kept."""
+    from telefringe.metrology._fit_kernels import lmeds_trials
+
     sub = p if p.shape[0] <= max_points else p[rng.choice(p.shape[0], max_points,
                                                           replace=False)]
-    best = None
-    best_med = np.inf
-    for _ in range(trials):
-        idx = rng.choice(sub.shape[0], 3, replace=False)
-        pl = _plane_from_3(sub[idx])
-        if pl is None:
-            continue
-        n, d = pl
-        med = float(np.median((sub @ n - d) ** 2))
-        if med < best_med:
-            best_med, best = med, (n, d)
-    if best is None:
+    triples = np.array([rng.choice(sub.shape[0], 3, replace=False) for _ in range(trials)],
+                       dtype=np.int64).reshape(trials, 3)
+    normals = np.empty((trials, 3))
+    offsets = np.empty(trials)
+    medians = np.empty(trials)
+    lmeds_trials(np.ascontiguousarray(sub, dtype=np.float64), triples, normals, offsets,
+                 medians)
+    if not np.any(np.isfinite(medians)):
         raise MetrologyError("the points are collinear: no plane")
-    return best[0], best[1], np.sqrt(best_med)
+    t = int(np.argmin(medians))
+    return normals[t].copy(), float(offsets[t]), np.sqrt(medians[t])
 
 
 def fit_plane(points, *, weights=None, robust: bool = False, seed: int = 0,

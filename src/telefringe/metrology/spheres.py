@@ -14,7 +14,7 @@ from telefringe.metrology._common import (
     _freeze,
     _points_and_weights,
 )
-from telefringe.metrology.planes import PlaneFit, _tls_plane, fit_plane
+from telefringe.metrology.planes import PlaneFit, fit_plane
 from telefringe.reconstruction.cloud import PointCloud
 
 
@@ -78,59 +78,18 @@ def _sphere_algebraic(p: np.ndarray, w: np.ndarray):
     return c + m, float(np.sqrt(r2))
 
 
-def _sphere_start_fixed(p: np.ndarray, w: np.ndarray, r: float) -> np.ndarray:
-    """Start for a fixed-radius fit of a cap seen from the camera side: below the top
-    of the points (the mean of their highest quarter along the normal of their plane)
-    by r. (An algebraic start is unreliable on the few points of a small cap.)"""
-    n, c, _ = _tls_plane(np.ascontiguousarray(p.T), w)
-    h = (p - c) @ n
-    top = p[h >= np.percentile(h, 75)]
-    return top.mean(axis=0) - r * n
-
-
 def _sphere_geometric(p: np.ndarray, w: np.ndarray, c: np.ndarray, r: float,
                       max_iter: int = 100, *, fixed_radius: bool = False):
-    """Levenberg-Marquardt on the radial residuals |p - c| - r (r fixed if asked)."""
-    sw = np.sqrt(w)
-    x = np.concatenate([c, [r]])
-    lam = 1e-3
-    npar = 3 if fixed_radius else 4
+    """Levenberg-Marquardt on the radial residuals |p - c| - r (r fixed if asked); the
+    compiled loop :func:`telefringe.metrology._fit_kernels.sphere_lm`. Returns
+    (centre (3,), radius, residuals (m,), weighted Jacobian (m, 3 or 4))."""
+    from telefringe.metrology._fit_kernels import sphere_lm
 
-    def resid(x):
-        d = p - x[:3]
-        dist = np.sqrt(np.sum(d * d, axis=1))
-        return dist - x[3], d, dist
-
-    def jac(d, dist):
-        J = np.column_stack([-d / dist[:, None], -np.ones(p.shape[0])]) * sw[:, None]
-        return J[:, :npar]
-
-    f, d, dist = resid(x)
-    cost = float(np.sum(w * f * f))
-    for _ in range(max_iter):
-        J = jac(d, dist)
-        fw = f * sw
-        H = J.T @ J
-        g = J.T @ fw
-        improved = False
-        for _ in range(20):
-            step = np.zeros(4)
-            step[:npar] = -np.linalg.solve(H + lam * np.diag(np.diag(H)), g)
-            xn = x + step
-            fn, dn, distn = resid(xn)
-            cn = float(np.sum(w * fn * fn))
-            if cn <= cost:
-                x, f, d, dist, cost_old, cost = xn, fn, dn, distn, cost, cn
-                lam = max(lam / 10, 1e-12)
-                improved = True
-                break
-            lam *= 10
-        if not improved:
-            break
-        if np.linalg.norm(step) <= 1e-12 * (1.0 + np.linalg.norm(x)) or (
-                cost_old - cost) <= 1e-15 * max(cost_old, 1e-300):
-            break
-    return x[:3], float(x[3]), f, jac(d, dist)
+    x0 = np.array([c[0], c[1], c[2], r], dtype=np.float64)
+    x, f, J = sphere_lm(np.ascontiguousarray(p, dtype=np.float64),
+                        np.ascontiguousarray(w, dtype=np.float64), x0,
+                        3 if fixed_radius else 4, int(max_iter))
+    return x[:3], float(x[3]), f, J
 
 
 def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 4.0,
@@ -175,17 +134,24 @@ def fit_sphere(points, *, weights=None, robust: bool = False, reject_k: float = 
     if fixed and not (np.isfinite(radius) and radius > 0):
         raise MetrologyError(f"radius must be > 0, got {radius!r}")
     keep = np.ones(idx.size, dtype=bool)
-    for _ in range(max_rounds if robust else 1):
+    if fixed:  # the same rounds in one compiled call (a BGA fits hundreds of caps)
+        from telefringe.metrology._fit_kernels import sphere_fixed_robust
+
+        has_start = start is not None
+        c0 = np.asarray(start, dtype=np.float64) if has_start else np.zeros(3)
+        ok, c, f, J, keep = sphere_fixed_robust(
+            np.ascontiguousarray(pf, dtype=np.float64), np.ascontiguousarray(wf), c0,
+            has_start, float(radius), float(reject_k), int(max_rounds if robust else 1),
+            _MAD)
+        if not ok:
+            raise MetrologyError("robust sphere fit: fewer than 5 inliers")
+        r = float(radius)
+        fitted = keep
+    for _ in range(0 if fixed else max_rounds if robust else 1):  # a free radius
         if np.count_nonzero(keep) < 5:
             raise MetrologyError("robust sphere fit: fewer than 5 inliers")
-        if fixed:
-            c0 = (np.asarray(start, dtype=np.float64) if start is not None
-                  else _sphere_start_fixed(pf[keep], wf[keep], float(radius)))
-            c, r, f, J = _sphere_geometric(pf[keep], wf[keep], c0, float(radius),
-                                           fixed_radius=True)
-        else:
-            c0, r0 = _sphere_algebraic(pf[keep], wf[keep])
-            c, r, f, J = _sphere_geometric(pf[keep], wf[keep], c0, r0)
+        c0, r0 = _sphere_algebraic(pf[keep], wf[keep])
+        c, r, f, J = _sphere_geometric(pf[keep], wf[keep], c0, r0)
         fitted = keep
         if not robust:
             break
@@ -226,11 +192,18 @@ class SphereMeasurement:
         the points, and then every point was fitted as sphere (``region`` says so).
     region : str, which points were fitted: ``"above the base plane"`` or
         ``"all points (no base plane found)"``.
+    fitted : (rows, cols) bool or None, the cloud's pixels whose points the sphere fit
+        kept (its inliers).
+    uncertainty : dict of str -> Uncertainty, or None: ``"radius"``, ``"centre"`` with
+        the noise and calibration parts (set by
+        :func:`telefringe.metrology.uncertainty.sphere_uncertainty`; None until then).
     """
 
     sphere: SphereFit
     base: PlaneFit | None
     region: str
+    fitted: np.ndarray | None = None
+    uncertainty: dict | None = None
 
 
 def measure_sphere(cloud: PointCloud, *, min_height: float | None = None,
@@ -270,9 +243,12 @@ def measure_sphere(cloud: PointCloud, *, min_height: float | None = None,
         region = labels == (1 + int(np.argmax(sizes)))
         if edge_px > 0:
             region = ndimage.binary_erosion(region, iterations=int(edge_px))
-        pts = cloud.xyz[region & mask]
+        sel = region & mask
         where = "above the base plane"
     else:
-        pts = cloud.points()
+        sel = mask
         where = "all points (no base plane found)"
-    return SphereMeasurement(fit_sphere(pts, robust=True), base, where)
+    fit = fit_sphere(cloud.xyz[sel], robust=True)
+    fitted = np.zeros(mask.shape, dtype=bool)
+    fitted[sel] = fit.inliers
+    return SphereMeasurement(fit, base, where, fitted)

@@ -307,8 +307,8 @@ def _unseen_positions(cloud, seg, T, pitch, theta, origin_local, rows, cols, D):
     k = np.round(f).astype(np.int64)
     near = np.all((k >= 0) & (k < (cols, rows)), axis=1) & (
         np.hypot(*(f - k).T) * pitch < D / 2)
-    counts = np.zeros((rows, cols), dtype=np.int64)
-    np.add.at(counts, (k[near, 1], k[near, 0]), 1)
+    counts = np.bincount(k[near, 1] * cols + k[near, 0],
+                         minlength=rows * cols).reshape(rows, cols)
     need = max(0.25 * seg.footprint_px, 1.0)
     return [(int(i), int(j)) for i, j in np.argwhere(counts < need)], counts
 

@@ -1,0 +1,247 @@
+"""Compiled kernels of the fits (private): the geometric sphere fit's Levenberg-Marquardt
+iteration (:func:`telefringe.metrology.spheres._sphere_geometric`) and the least median
+of squares plane's trials (:func:`telefringe.metrology.planes._lmeds_plane`). The same
+arithmetic as the NumPy forms they replace, in float64 without fastmath, so that a BGA's
+hundreds of small caps and a plane's hundreds of trials are not bound by NumPy's per-call
+overhead (the trials also run in parallel)."""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _cost(p, w, x, f, d, dist):
+    """Radial residuals |p - c| - r of x = (c, r) into f (with d = p - c and dist), and
+    the weighted cost sum w f^2."""
+    cost = 0.0
+    for i in range(p.shape[0]):
+        a = p[i, 0] - x[0]
+        b = p[i, 1] - x[1]
+        c = p[i, 2] - x[2]
+        d[i, 0] = a
+        d[i, 1] = b
+        d[i, 2] = c
+        r = np.sqrt(a * a + b * b + c * c)
+        dist[i] = r
+        f[i] = r - x[3]
+        cost += w[i] * f[i] * f[i]
+    return cost
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _jac(d, dist, sw, npar, J):
+    """Weighted Jacobian rows sqrt(w) d f / d(c, r) (the first npar columns)."""
+    for i in range(d.shape[0]):
+        s = sw[i] / dist[i]
+        J[i, 0] = -d[i, 0] * s
+        J[i, 1] = -d[i, 1] * s
+        J[i, 2] = -d[i, 2] * s
+        if npar == 4:
+            J[i, 3] = -sw[i]
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def sphere_lm(p, w, x0, npar, max_iter):
+    """Levenberg-Marquardt on the radial residuals of points ``p`` (m, 3) with weights
+    ``w`` (m,) from ``x0`` = (centre, radius); npar 3 keeps the radius fixed.
+
+    Returns (x (4,), f (m,) residuals, J (m, npar) weighted Jacobian at x). Damping
+    ``H + lam diag(H)``, lam from 1e-3, divided by 10 on success (>= 1e-12) and
+    multiplied by 10 on failure (20 tries per iteration); stops when a step is below
+    1e-12 (1 + |x|) or the cost decreases by less than 1e-15 of itself.
+    """
+    m = p.shape[0]
+    sw = np.sqrt(w)
+    x = x0.copy()
+    f = np.empty(m)
+    d = np.empty((m, 3))
+    dist = np.empty(m)
+    fn = np.empty(m)
+    dn = np.empty((m, 3))
+    distn = np.empty(m)
+    J = np.empty((m, npar))
+    H = np.empty((npar, npar))
+    g = np.empty(npar)
+    xn = np.empty(4)
+    step = np.zeros(4)
+    lam = 1e-3
+    cost = _cost(p, w, x, f, d, dist)
+    cost_old = cost
+    for _ in range(max_iter):
+        _jac(d, dist, sw, npar, J)
+        for a in range(npar):
+            ga = 0.0
+            for i in range(m):
+                ga += J[i, a] * f[i] * sw[i]
+            g[a] = ga
+            for b in range(a, npar):
+                s = 0.0
+                for i in range(m):
+                    s += J[i, a] * J[i, b]
+                H[a, b] = s
+                H[b, a] = s
+        improved = False
+        for _ in range(20):
+            A = H.copy()
+            for a in range(npar):
+                A[a, a] += lam * H[a, a]
+            sol = np.linalg.solve(A, g)
+            for a in range(4):
+                step[a] = -sol[a] if a < npar else 0.0
+                xn[a] = x[a] + step[a]
+            cn = _cost(p, w, xn, fn, dn, distn)
+            if cn <= cost:
+                x[:] = xn
+                f[:] = fn
+                d[:, :] = dn
+                dist[:] = distn
+                cost_old = cost
+                cost = cn
+                lam = max(lam / 10, 1e-12)
+                improved = True
+                break
+            lam *= 10
+        if not improved:
+            break
+        if np.sqrt(np.sum(step * step)) <= 1e-12 * (1.0 + np.sqrt(np.sum(x * x))) or (
+                cost_old - cost) <= 1e-15 * max(cost_old, 1e-300):
+            break
+    _jac(d, dist, sw, npar, J)
+    return x, f, J
+
+
+@nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def lmeds_trials(sub, triples, normals, offsets, medians):
+    """Per trial t: the plane through the points ``sub[triples[t]]`` (unit normal, offset
+    n . p0) and the median of the squared distances of every point of ``sub`` (m, 3) to
+    it; ``medians[t]`` is inf where the three points are collinear (the cross product's
+    norm below 1e-12 max(1, max |coordinate|)^2)."""
+    m = sub.shape[0]
+    for t in nb.prange(triples.shape[0]):
+        a = sub[triples[t, 0]]
+        b = sub[triples[t, 1]]
+        c = sub[triples[t, 2]]
+        u0, u1, u2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        v0, v1, v2 = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+        n0 = u1 * v2 - u2 * v1
+        n1 = u2 * v0 - u0 * v2
+        n2 = u0 * v1 - u1 * v0
+        nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        big = 1.0
+        for k in range(3):
+            big = max(big, abs(a[k]), abs(b[k]), abs(c[k]))
+        if nn < 1e-12 * big * big:
+            medians[t] = np.inf
+            continue
+        n0 /= nn
+        n1 /= nn
+        n2 /= nn
+        d = n0 * a[0] + n1 * a[1] + n2 * a[2]
+        r2 = np.empty(m)
+        for i in range(m):
+            r = sub[i, 0] * n0 + sub[i, 1] * n1 + sub[i, 2] * n2 - d
+            r2[i] = r * r
+        normals[t, 0] = n0
+        normals[t, 1] = n1
+        normals[t, 2] = n2
+        offsets[t] = d
+        medians[t] = np.median(r2)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _start_fixed(p, w, r):
+    """The start of a fixed-radius fit of a cap seen from the camera side: the weighted total least
+    squares plane of the points, the mean of their highest quarter along its normal, minus
+    r times the normal."""
+    m = p.shape[0]
+    sw = 0.0
+    for i in range(m):
+        sw += w[i]
+    c = np.zeros(3)
+    for k in range(3):
+        s = 0.0
+        for i in range(m):
+            s += p[i, k] * w[i]
+        c[k] = s / sw
+    S = np.zeros((3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            s = 0.0
+            for i in range(m):
+                s += (p[i, a] - c[a]) * w[i] * (p[i, b] - c[b])
+            S[a, b] = s
+            S[b, a] = s
+    _, evecs = np.linalg.eigh(S)
+    n = evecs[:, 0].copy()
+    if n[2] < 0:
+        n = -n
+    h = np.empty(m)
+    for i in range(m):
+        h[i] = (p[i, 0] - c[0]) * n[0] + (p[i, 1] - c[1]) * n[1] + (p[i, 2] - c[2]) * n[2]
+    q = np.percentile(h, 75.0)
+    top = np.zeros(3)
+    cnt = 0
+    for i in range(m):
+        if h[i] >= q:
+            cnt += 1
+            for k in range(3):
+                top[k] += p[i, k]
+    return top / cnt - r * n
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def sphere_fixed_robust(p, w, start, has_start, r, reject_k, rounds, mad):
+    """The fixed-radius branch of :func:`telefringe.metrology.spheres.fit_sphere`: up to
+    ``rounds`` fits (:func:`sphere_lm`, from ``start`` or :func:`_start_fixed`), each
+    keeping the points whose radial residual times sqrt(w) is within ``reject_k`` robust
+    (MAD) standard deviations of the last fit's, until the kept points repeat.
+
+    Returns (ok, centre (3,), residuals f of the kept points, weighted Jacobian J, keep
+    (m,) bool of the last fit); ok False when fewer than 5 points are kept.
+    """
+    m = p.shape[0]
+    keep = np.ones(m, dtype=np.bool_)
+    x = np.zeros(4)
+    f = np.empty(0)
+    J = np.empty((0, 3))
+    fitted = keep.copy()
+    sq = np.sqrt(w)
+    for _ in range(rounds):
+        n_keep = 0
+        for i in range(m):
+            n_keep += keep[i]
+        if n_keep < 5:
+            return False, x[:3].copy(), f, J, keep
+        pk = np.empty((n_keep, 3))
+        wk = np.empty(n_keep)
+        j = 0
+        for i in range(m):
+            if keep[i]:
+                pk[j] = p[i]
+                wk[j] = w[i]
+                j += 1
+        c0 = start if has_start else _start_fixed(pk, wk, r)
+        x0 = np.array([c0[0], c0[1], c0[2], r])
+        x, f, J = sphere_lm(pk, wk, x0, 3, 100)
+        fitted = keep.copy()
+        if rounds == 1:
+            break
+        a = np.empty(n_keep)
+        for i in range(n_keep):
+            a[i] = abs(f[i] * np.sqrt(wk[i]))
+        scale = mad * np.median(a) + 1e-15
+        same = True
+        new_keep = np.empty(m, dtype=np.bool_)
+        for i in range(m):
+            dx = p[i, 0] - x[0]
+            dy = p[i, 1] - x[1]
+            dz = p[i, 2] - x[2]
+            res = (np.sqrt(dx * dx + dy * dy + dz * dz) - x[3]) * sq[i]
+            new_keep[i] = abs(res) <= reject_k * scale
+            same = same and new_keep[i] == keep[i]
+        if same:
+            break
+        keep = new_keep
+    return True, x[:3].copy(), f, J, fitted
