@@ -231,8 +231,9 @@ def test_two_pinhole_cameras_calibrate_with_or_without_the_projector(tmp_path):
     assert back.rig.camera_names == ("camera", "camera_2")
     np.testing.assert_array_equal(back.parameters, full.parameters)
     for d in full.device_names:
-        assert getattr(back, f"rms_{d}") == pytest.approx(full.devices[d].rms, rel=1e-12)
-    np.testing.assert_allclose(back.rms_per_pose, full.rms_per_pose, rtol=1e-12)
+        assert back.devices[d].rms == pytest.approx(full.devices[d].rms, rel=1e-12)
+        np.testing.assert_allclose(back.devices[d].rms_per_pose,
+                                   full.devices[d].rms_per_pose, rtol=1e-12)
     # the calibration report draws every device (and a rig without a projector)
     from telefringe.io.figures.calibration_report import write_calibration_report
 
