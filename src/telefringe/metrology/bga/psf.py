@@ -79,9 +79,9 @@ def _brightness_gradient_terms(cloud: PointCloud, image: np.ndarray, projector,
     xyz = np.where(cloud.mask[..., None], cloud.xyz, np.nan)
     with np.errstate(divide="ignore", invalid="ignore"):
         ln_i = np.log(np.where(image > 0, image, np.nan))
-    gi_v, gi_u = np.gradient(ln_i)
     B = np.zeros(cloud.shape + (3,))
     if projector is not None:
+        gi_v, gi_u = np.gradient(ln_i)
         up = np.asarray(projector.project(xyz)[0], dtype=np.float64)
         x0 = np.nanmedian(xyz.reshape(-1, 3), axis=0)
         du_dt = float((np.asarray(projector.project(x0 + 0.01 * d)[0])
@@ -90,6 +90,13 @@ def _brightness_gradient_terms(cloud: PointCloud, image: np.ndarray, projector,
         B[..., 0] = (gi_u * gu_u + gi_v * gu_v) / du_dt / px_mm**2
         return B, True
     t = xyz @ d
+    if min(t.shape) >= 2:  # (one compiled pass, the same arithmetic as below)
+        from telefringe.metrology.bga._kernels import gradient_terms
+
+        gradient_terms(np.ascontiguousarray(ln_i), np.ascontiguousarray(t),
+                       float(px_mm**2), B)
+        return B, False
+    gi_v, gi_u = np.gradient(ln_i)
     gt_v, gt_u = np.gradient(t)
     B[..., 0] = (gi_u * gt_u + gi_v * gt_v) / px_mm**2
     B[..., 1] = gi_u
