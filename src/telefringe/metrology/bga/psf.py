@@ -193,16 +193,17 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
                 if np.count_nonzero(keep) < 10:
                     why = "too_few_points_facing_camera"
                 else:
-                    item = (pts[keep], sig[keep], bg[keep], f0.centre)
+                    pts, sig, bg = pts[keep], sig[keep], bg[keep]
+                    # (theta-independent: computed once, not in every round)
+                    cos_t, g = _smoothing_shape(pts, f0.centre, r, view)
+                    R = np.column_stack([g + bg[:, 0], bg[:, 1], bg[:, 2]])[:, :npar]
+                    item = (pts, f0.centre, R, 1.0 / (sig * cos_t) ** 2)
         sel.append(item)
         reasons.append(why)
 
     def fit_one(item, theta):
-        pts, sig, bg, c = item
-        cos_t, g = _smoothing_shape(pts, c, r, view)
-        R = np.column_stack([g + bg[:, 0], bg[:, 1], bg[:, 2]])[:, :npar]
+        pts, c, R, w = item
         q = pts + np.outer(R @ theta, view)  # moved up, toward the camera
-        w = 1.0 / (sig * cos_t) ** 2
         f = fit_sphere(q, weights=w, robust=True, radius=r, start=c)
         m = f.inliers
         res, J, K = _cap_residuals(pts[m], R[m], f.centre, theta, r, view)
