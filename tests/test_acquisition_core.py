@@ -304,3 +304,34 @@ def test_a_camera_that_sees_no_fringes_is_one_clear_error():
     check_modulation(seen, Policy())
     with pytest.raises(CaptureFailed, match="does not see the projected patterns"):
         check_modulation([GroupReport("phase", modulated=0.004)], Policy())
+
+
+def test_gray_frames_mixed_or_repeating_the_previous_pattern_are_flagged():
+    """A Gray-code frame with most of the previous frame's light (late) is flagged by the
+    repeat test, one half-and-half by the mid-grey test; a clean group passes."""
+    from telefringe.acquisition.sequence import Policy, check_groups
+    from telefringe.fringes.patterns import gray_code_bits
+    from telefringe.fringes.scan import GrayGroup
+
+    phase = _synthetic(4)                                  # (4, 60, 200), dark 10
+    x = (np.arange(200) * 2)[None, :] * np.ones((60, 1), dtype=int)
+    g = GrayGroup("u", 3, complementary=True)
+    bits = gray_code_bits(x, bits=3, length=400, complementary=True).astype(float)
+    gray = 10 + 200 * 0.75 * bits                          # lit like the fringes' peak
+    layout = [("phase", PhaseGroup("u", 29, 4)), ("gray", g)]
+
+    def flagged(gray_frames):
+        imgs = [*phase, *gray_frames]
+        reports, fl = check_groups(imgs, layout, max_value=255, policy=Policy(),
+                                   saturation_limit=True)
+        return sorted(i - 4 for i in fl), reports[1].message
+
+    assert flagged(list(gray))[0] == []
+    late = gray.copy()
+    late[2] = 0.85 * gray[1] + 0.15 * gray[2]
+    f, msg = flagged(list(late))
+    assert f == [2] and "previous pattern" in msg, msg
+    mixed = gray.copy()
+    mixed[2] = 0.5 * gray[1] + 0.5 * gray[2]
+    f, msg = flagged(list(mixed))
+    assert f == [2] and "mid-grey" in msg, msg

@@ -149,7 +149,9 @@ _CMDS = _commands()
 _DOCUMENTED = [["decode"], ["patterns"], ["calibrate"], ["reconstruct"], ["paper"], ["demo"],
                ["simulate", "calibration"], ["simulate", "scan"], ["measure", "plate"],
                ["measure", "sphere"], ["measure", "bga"], ["measure", "steps"],
-               ["accept"], ["simulate", "acceptance"], ["batch"]]
+               ["accept"], ["simulate", "acceptance"], ["batch"],
+               ["rig", "import-opencv"], ["rig", "export-opencv"], ["capture", "scan"],
+               ["capture", "calibration"], ["capture", "latency"], ["capture", "devices"]]
 
 
 def test_every_documented_command_is_registered():

@@ -138,6 +138,8 @@ def test_distortion_lengths(tmp_path, D, ok):
     ({"M4": None, "D4": None, "Rlp": None, "Tlp": None}, {}, "holds one camera"),
     ({"Rlp": R_LP * 1.01}, {}, "Rlp is not a rotation"),
     ({"Rlp": R_LP @ np.diag([1.0, 1.0, -1.0])}, {}, "Rlp is not a rotation.*reflection"),
+    ({"Rlp": np.diag([1.0, 1.0, 1e300])}, {}, "Rlp is not a rotation"),
+    ({"Rlp": [[0.0, 0.0, 1e300]]}, {}, "Rlp is not a rotation vector"),
     ({"Tlp": [[1.0, 2.0]]}, {}, "Tlp must be a translation"),
     ({"M4": K()[:2]}, {}, "M4 must be a 3 x 3"),
     ({"M1": K() + np.array([[0, 3.0, 0], [0, 0, 0], [0, 0, 0]])}, {}, "skew"),
@@ -299,3 +301,69 @@ def test_the_real_slmaster_calibration(tmp_path):
     assert cam.image_size == (1280, 1024) and imp.unused == ()
     # the projector sits about 11 cm to the camera's right
     assert 100 < proj.centre_world[0] < 115
+
+
+@pytest.mark.skipif(not REAL.is_file(), reason="../shared/realdata is not present")
+def test_the_help_example_runs_as_written(tmp_path, monkeypatch):
+    """`telefringe rig import-opencv --help`'s example, run from the repository (its output
+    sent to a temporary folder), then export-opencv's."""
+    import shlex
+
+    from telefringe.cli.rig import _IMPORT_EXAMPLE
+
+    args = shlex.split(_IMPORT_EXAMPLE)
+    assert args[:3] == ["telefringe", "rig", "import-opencv"] and args[-2] == "-o"
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    out = tmp_path / args[-1]
+    assert main([*args[1:-1], str(out)]) == 0
+    assert load_rig(out).projector.image_size == (1920, 1080)
+    assert main(["rig", "export-opencv", str(out), "-o", str(tmp_path / "relief_cal.yml")]) == 0
+
+
+def test_world_frame_toward_the_camera(tmp_path):
+    """--world toward-camera: the same rig turned 180 deg about the camera's x axis, so
+    that z (heights) points toward the camera; projections unchanged, export unchanged."""
+    f = write_fs(tmp_path / "cal.yml", slmaster_nodes())
+    cam_frame = read_opencv_rig(f, projector_size="1920x1080").rig
+    imp = read_opencv_rig(f, projector_size="1920x1080", world="toward-camera")
+    np.testing.assert_array_equal(imp.rig.camera.R_dev_world, np.diag([1.0, -1.0, -1.0]))
+    assert "toward the camera" in imp.world_definition
+    X = np.array([[10.0, -20.0, 700.0], [-50.0, 40.0, 760.0]])  # camera frame, mm
+    Xw = X * [1.0, -1.0, -1.0]
+    assert np.all(Xw[:, 2] < 0)  # in front of the camera = negative z: heights grow toward it
+    for a, b in ((cam_frame.camera, imp.rig.camera), (cam_frame.projector, imp.rig.projector)):
+        np.testing.assert_allclose(np.stack(b.project(Xw)), np.stack(a.project(X)), atol=1e-9)
+    assert opencv_rig_text(imp.rig) == opencv_rig_text(cam_frame)
+    with pytest.raises(InputError, match="world must be one of"):
+        read_opencv_rig(f, projector_size="1920x1080", world="up")
+    out = tmp_path / "rig.json"
+    assert main(["rig", "import-opencv", str(f), "--projector-size", "1920x1080", "--world",
+                 "toward-camera", "-o", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert "toward the camera" in doc["world_frame"]["definition"]
+    np.testing.assert_allclose(load_rig(out).camera.R_dev_world, np.diag([1.0, -1.0, -1.0]),
+                               atol=1e-15)
+
+
+@settings(max_examples=80, deadline=None)
+@given(data=st.data())
+def test_any_corrupted_node_is_refused_cleanly(data, tmp_path_factory):
+    """Replace any node by a matrix of any small shape and hostile values: the reader
+    returns a rig of valid devices or raises InputError, nothing else."""
+    nodes = slmaster_nodes(M2=K(1760.0, 1758.0), D2=D5, R=np.eye(3), T=[[-90.0], [0], [0]])
+    key = data.draw(st.sampled_from(sorted(nodes)))
+    shape = (data.draw(st.integers(1, 4)), data.draw(st.integers(1, 4)))
+    values = data.draw(st.lists(st.sampled_from([0.0, 1.0, -1.0, 1e-300, 1e300, np.nan,
+                                                 np.inf, 1280.0, 0.5]),
+                                min_size=shape[0] * shape[1], max_size=shape[0] * shape[1]))
+    nodes[key] = np.array(values).reshape(shape)
+    f = write_fs(tmp_path_factory.mktemp("fz") / "cal.yml", nodes)
+    try:
+        rig = read_opencv_rig(f, projector_size="1920x1080").rig
+    except InputError as exc:
+        assert "\n" not in str(exc)
+        return
+    for dev in [*rig.cameras.values(), rig.projector]:
+        k = dev.intrinsics
+        assert k.fx > 0 and k.fy > 0 and np.all(np.isfinite(dev.t_dev))
+        np.testing.assert_allclose(dev.R_dev_world @ dev.R_dev_world.T, np.eye(3), atol=1e-9)

@@ -339,3 +339,47 @@ def test_any_corruption_of_a_pinhole_rig_is_refused_cleanly(data):
         return
     for dev in out.rig.cameras.values():
         assert np.all(np.isfinite(dev.R_dev_world)) and np.all(np.isfinite(dev.t_dev))
+
+
+def test_every_device_report_round_trips(calib):
+    """A calibration of two cameras and a projector keeps each device's report (its
+    DeviceReport in RigCalibration.devices), camera_2 included."""
+    import dataclasses
+
+    from telefringe.calibration import rig as calibration_rig
+    from telefringe.devices.rig import Rig
+    from telefringe.io.rig_json import rig_parameter_names_of
+
+    DeviceReport = getattr(calibration_rig, "DeviceReport", None)
+    if DeviceReport is None:
+        pytest.skip("this RigCalibration keeps no per-device reports (DeviceReport)")
+    rng = np.random.default_rng(6)
+    rig = Rig(cameras={"camera": _pinhole(rng), "camera_2": _pinhole(rng, t=(80.0, 0, 0))},
+              projector=calib.rig.projector)
+    names = rig_parameter_names_of(rig)
+    n, shape = len(names), calib.camera_observations.shape
+
+    def report(model, seed):
+        g = np.random.default_rng(seed)
+        res = g.normal(size=shape)
+        res[1, 2] = np.nan
+        return DeviceReport(model=model, sigma=float(g.random()), observations=g.normal(
+            size=shape), residuals=res, rms=float(g.random()),
+            rms_per_pose=g.random(shape[0]), principal_point_weak=bool(seed % 2))
+
+    reps = {"camera": report("pinhole", 1), "camera_2": report("pinhole", 2),
+            "projector": report("telecentric", 3)}
+    three = dataclasses.replace(calib, rig=rig, parameter_names=names,
+                                parameters=rng.normal(size=n), covariance=np.eye(n),
+                                std=np.ones(n), devices=reps)
+    back = rig_from_json(json.loads(json.dumps(rig_to_json(three))))
+    assert back.rig.camera_names == ("camera", "camera_2")
+    assert back.mirror == "none: a pinhole device fixes it"
+    for d, rep in reps.items():
+        got = back.devices[d]
+        for f in ("observations", "residuals", "rms_per_pose"):
+            np.testing.assert_array_equal(getattr(got, f), getattr(rep, f), err_msg=f"{d}.{f}")
+        assert (got.rms, got.sigma, got.principal_point_weak, got.model) == (
+            rep.rms, rep.sigma, rep.principal_point_weak, rep.model)
+    np.testing.assert_array_equal(back.rms_per_pose[:, 1], reps["projector"].rms_per_pose)
+    assert back.sigma_projector == reps["projector"].sigma

@@ -62,6 +62,9 @@ class Policy:
         group (or 4 times its noise, if larger). Clean groups of the virtual rig show
         0.010-0.015 (noise); a frame of the previous pattern moves it by about 0.35 for
         N = 4, a quarter of one (4 ms of a 16 ms exposure) by 0.05-0.06.
+    gray_repeat : float, a Gray-code frame whose RMS difference from the frame before it,
+        relative to white - black, is below this shows mostly that frame's pattern
+        (consecutive bit images differ on about half the pixels: about 0.7).
     min_modulated : float, smallest fraction of pixels that must show fringes (in the
         best phase group of a pass); below it the camera does not see the projection.
     flash_factor : float, a frame whose saturated fraction exceeds its group's median by
@@ -77,6 +80,7 @@ class Policy:
     flash_factor: float = 3.0
     min_modulated: float = 0.01
     background_tol: float = 0.03
+    gray_repeat: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -267,10 +271,25 @@ def check_groups(images: Sequence[np.ndarray], layout: Sequence[tuple], *, max_v
             r = verify.gray_check(np.stack(frames), dark=dark, bright=bright,
                                   min_contrast=contrast)
             bad = {int(s0 + j) for j in np.flatnonzero(r.flagged)}
+            # a frame showing mostly the pattern before it (light late by most of the
+            # exposure): consecutive bit images differ on about half the pixels
+            lit = (bright - dark) > contrast
+            late = []
+            if np.count_nonzero(lit) >= 50:
+                for j in range(len(frames)):
+                    if s0 + j == 0:
+                        continue
+                    prev = np.asarray(images[s0 + j - 1], dtype=float)
+                    d = (np.asarray(frames[j], dtype=float) - prev)[lit] / (bright - dark)[lit]
+                    if float(np.sqrt(np.mean(d * d))) < policy.gray_repeat:
+                        late.append(j)
+                        bad.add(int(s0 + j))
+            msg = r.message + "".join(f"; frame {j}: mostly the previous pattern"
+                                      for j in late)
             flagged |= bad
             reports.append(GroupReport("gray", True, saturated=gsat,
                                        flagged=tuple(sorted(i - int(s0) for i in bad)),
-                                       message=r.message))
+                                       message=msg.strip("; ")))
         else:
             reports.append(GroupReport(kind, False, saturated=gsat))
     # groups the step check could not judge (a coarse group seeing part of a period):

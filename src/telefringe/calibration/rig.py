@@ -1,4 +1,12 @@
-"""A camera and a projector calibrated jointly over one set of target poses.
+"""Devices calibrated jointly over one set of target poses: a camera and a projector,
+each telecentric or pinhole, or two cameras with an optional projector
+(:func:`calibrate_devices`; :func:`calibrate_rig` for one camera and a projector).
+
+Each device starts from the closed form of its model, alone; the starts are put in one
+world frame (the target at the reference pose) through their per-pose rotations, on one
+rigid branch of the telecentric mirror ambiguity (a pinhole device settles it, else the
+projector's side); one bundle adjustment over every device and pose follows, weighted by
+each device's noise, with outlier rejection and the parameter covariance.
 
 Units: mm in the world and on sensors, px in images, radians. Reprojection "RMS" is the
 root mean square of the 2-D error length over points (px of the device). The principal
@@ -11,7 +19,7 @@ accuracy, since it then barely changes any image).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,19 +35,48 @@ from telefringe.calibration.device import (
 )
 from telefringe.calibration.errors import CalibrationError
 from telefringe.calibration.problem import BundleProblem, ParameterLayout, check_observations
-from telefringe.calibration.starts import PROJECTOR_SIDES, rig_rotations
+from telefringe.calibration.starts import PROJECTOR_SIDES, joint_rotations
 from telefringe.devices.base import ROTATION_NAMES, Device
 from telefringe.devices.rig import Rig
 from telefringe.geometry.so3 import chordal_mean
 
-__all__ = ["RigCalibration", "calibrate_rig", "rig_parameter_names"]
+__all__ = ["DeviceReport", "RigCalibration", "calibrate_devices", "calibrate_rig",
+           "rig_parameter_names"]
 
 
 def rig_parameter_names(rig: Rig) -> tuple[str, ...]:
-    """The names of a rig's parameter vector: ``"camera.<p>"`` for each of the camera's
-    ``param_names``, then ``"projector.<p>"`` (see :class:`RigCalibration`)."""
-    return (tuple(f"camera.{p}" for p in rig.camera.param_names)
-            + tuple(f"projector.{p}" for p in rig.projector.param_names))
+    """The names of a rig's parameter vector: ``"<camera>.<p>"`` for each camera's
+    ``param_names`` (``camera``, then ``camera_2``), then ``"projector.<p>"`` when the
+    rig has a projector (see :class:`RigCalibration`)."""
+    devs = list(rig.cameras.items())
+    if rig.projector is not None:
+        devs.append(("projector", rig.projector))
+    return tuple(f"{n}.{p}" for n, d in devs for p in d.param_names)
+
+
+@dataclass(frozen=True, eq=False)
+class DeviceReport:
+    """One device's part of a joint calibration.
+
+    Attributes
+    ----------
+    model : str.
+    sigma : float, px, per-coordinate noise estimated from the residuals.
+    observations, residuals : (n_poses, n_points, 2) ndarray, px (residuals predicted -
+        observed; NaN where not observed, rejected or unused).
+    rms : float, px (2-D length); rms_per_pose : (n_poses,) px, NaN for unused poses.
+    principal_point_weak : bool.
+    alone : DeviceCalibration or None, its calibration alone (the start).
+    """
+
+    model: str
+    sigma: float
+    observations: np.ndarray
+    residuals: np.ndarray
+    rms: float
+    rms_per_pose: np.ndarray
+    principal_point_weak: bool
+    alone: DeviceCalibration | None = field(default=None, repr=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,12 +107,13 @@ class RigCalibration:
     residuals_camera, residuals_projector : (n_poses, n_points, 2) ndarray, px
         (predicted - observed); NaN where not observed, rejected or unused.
     rms_camera, rms_projector : float, px, RMS reprojection error (2-D length).
-    rms_per_pose : (n_poses, 2) ndarray, px (camera, projector); NaN for unused poses.
+    rms_per_pose : (n_poses, n_devices) ndarray, px, one column per device in the order of
+        ``device_names`` ((camera, projector) for one camera); NaN for unused poses.
     outliers : tuple of Outlier.
     camera_observations, projector_observations : (n_poses, n_points, 2) ndarray, px,
         the observations given (NaN where missing).
-    principal_point : str, "estimate" or "fixed"; principal_point_weak : (bool, bool)
-        for (camera, projector).
+    principal_point : str, "estimate" or "fixed"; principal_point_weak : tuple of bool,
+        one per device in the order of ``device_names``.
     mirror : str, how the global mirror ambiguity was resolved ("projector_side=...",
         to which ``telefringe calibrate`` adds where the side came from).
     warnings : tuple of str, things a person should read (skipped poses, conventions).
@@ -85,6 +123,11 @@ class RigCalibration:
         nonlinearity learned from the calibration scans (mean over the poses of each
         pose's fit, :func:`telefringe.gamma.mean_model`); empty when it was not learned.
         Pass it to :func:`telefringe.fringes.decode.decode` to skip learning it from every scan.
+    devices : dict device name -> :class:`DeviceReport` (every device's part of the
+        report, with its calibration alone); empty for a rig read from rig.json.
+    rms_camera_2, sigma_camera_2, residuals_camera_2, camera_2_observations : the second
+        camera's report (as the ``*_camera`` fields) for a two-camera rig; NaN / None
+        otherwise. The ``*_projector`` fields are NaN when no projector is calibrated.
     """
 
     rig: Rig
@@ -116,6 +159,16 @@ class RigCalibration:
     camera_alone: DeviceCalibration | None = field(default=None, repr=False)
     projector_alone: DeviceCalibration | None = field(default=None, repr=False)
     phase_errors: dict = field(default_factory=dict, repr=False)
+    devices: dict = field(default_factory=dict, repr=False)
+    rms_camera_2: float = float("nan")
+    sigma_camera_2: float = float("nan")
+    residuals_camera_2: np.ndarray | None = field(default=None, repr=False)
+    camera_2_observations: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def device_names(self) -> tuple[str, ...]:
+        """The calibrated devices in parameter order (cameras, then the projector)."""
+        return tuple(self.devices) if self.devices else ("camera", "projector")
 
     @property
     def camera(self) -> Device:
@@ -142,7 +195,8 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
                   principal_point_sigma: float | None = None,
                   outlier_threshold: float = 5.0, max_rounds: int = 3,
                   min_poses: int = 4, min_points: int = 6,
-                  warnings: Sequence[str] = ()) -> RigCalibration:
+                  warnings: Sequence[str] = (), camera_model: str = "telecentric",
+                  projector_model: str = "telecentric") -> RigCalibration:
     """Joint calibration of a camera and a projector from target poses.
 
     Each device is first calibrated alone (:func:`~telefringe.calibration.device.calibrate_device`);
@@ -158,7 +212,7 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
     camera_observations : (n_poses, n_points, 2) array_like, camera px; NaN = missing.
     projector_observations : (n_poses, n_points, 2) array_like, projector px (u_p, v_p
         at each circle centre); NaN = missing.
-    camera_pixel_size, projector_pixel_size : (du, dv), mm.
+    camera_pixel_size, projector_pixel_size : (du, dv), mm (None for a pinhole device).
     camera_size, projector_size : (width, height), px.
     reference_pose : int, the pose whose target frame is the world frame.
     pose_names : sequence of str, names for the report; grid_shape : (rows, cols).
@@ -171,6 +225,8 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
     outlier_threshold, max_rounds : outlier rejection (robust sigmas, rounds).
     min_poses : int, fewest poses seen by both devices.
     warnings : sequence of str, earlier warnings to carry into the result.
+    camera_model, projector_model : "telecentric" (default) or "pinhole"; a rig with a
+        pinhole device has no mirror ambiguity (``projector_side`` is then not needed).
 
     Returns
     -------
@@ -199,76 +255,156 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
     if not 0 <= ref < n_poses:
         raise ValueError(f"reference_pose {ref} out of range 0..{n_poses - 1}")
     warns = list(warnings)
+    return calibrate_devices(
+        P, {"camera": cam, "projector": proj},
+        models={"camera": camera_model, "projector": projector_model},
+        pixel_sizes={"camera": camera_pixel_size, "projector": projector_pixel_size},
+        image_sizes={"camera": camera_size, "projector": projector_size},
+        reference_pose=ref, pose_names=names, grid_shape=grid_shape,
+        projector_side=projector_side, principal_point=principal_point,
+        principal_point_sigma=principal_point_sigma, outlier_threshold=outlier_threshold,
+        max_rounds=max_rounds, min_poses=min_poses, min_points=min_points, warnings=warns)
+
+
+def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
+                      models: Mapping[str, str], pixel_sizes: Mapping[str, object],
+                      image_sizes: Mapping[str, object], reference_pose: int = 0,
+                      pose_names=None, grid_shape=None, projector_side: str | None = None,
+                      principal_point: str = "estimate",
+                      principal_point_sigma: float | None = None,
+                      outlier_threshold: float = 5.0, max_rounds: int = 3,
+                      min_poses: int = 4, min_points: int = 6,
+                      warnings: Sequence[str] = (),
+                      marker_radius: float | None = None) -> RigCalibration:
+    """Joint calibration of any devices (one or two cameras, an optional projector).
+
+    Each device is calibrated alone with the closed-form start of its model
+    (:func:`~telefringe.calibration.device.calibrate_device`); their rotations are put on
+    one rigid branch (:func:`telefringe.calibration.starts.joint_rotations`: telecentric
+    devices leave a mirror ambiguity, which a pinhole device settles, or else
+    ``projector_side``); one bundle adjustment over all devices and poses follows (world
+    frame = target at the reference pose), with the parameter covariance.
+
+    Parameters
+    ----------
+    points_target : (n_points, 3) mm on z = 0.
+    observations : mapping device name -> (n_poses, n_points, 2) px, NaN where missing;
+        names ``camera`` (first), optionally ``camera_2``, optionally ``projector``.
+    models, pixel_sizes, image_sizes : mappings by device name (model "telecentric" or
+        "pinhole"; pixel size (du, dv) mm, None for a pinhole device; (width, height) px).
+    marker_radius : float, mm, the radius of the target's circles, or None. Given, and a
+        camera sees depth (a pinhole camera), the perspective eccentricity of the circle
+        centres is corrected: the centre of a circle's image (what a detector measures)
+        is not the image of its centre. The observations are corrected with the current
+        estimate (each camera's by the centre of its own image of the circle; the
+        projector's, read through the first camera's phase at that camera's image
+        centre, by the projector's image of the plate point seen there) and the
+        adjustment repeated (twice). Residuals are then those of the corrected
+        observations. A telecentric camera's images of circles are centred (an affine map
+        keeps centres), so no correction is made for it.
+    Others : as :func:`calibrate_rig`.
+
+    Returns
+    -------
+    RigCalibration (its ``devices`` holds every device's :class:`DeviceReport`; the
+    ``*_projector`` fields are NaN when no projector is calibrated).
+
+    Raises
+    ------
+    CalibrationError
+    """
+    names_d = tuple(observations)
+    if not names_d or names_d[0] != "camera":
+        raise ValueError("observations: the first device must be 'camera'")
+    P = np.asarray(points_target, dtype=float)
+    obs = {}
+    for d in names_d:
+        _, obs[d] = check_observations(P, observations[d], f"{d} observations")
+    shape = obs["camera"].shape
+    if any(o.shape != shape for o in obs.values()):
+        raise CalibrationError("every device's observations must have the same shape")
+    n_poses = shape[0]
+    names = [str(i) for i in range(n_poses)] if pose_names is None else [str(p) for p in
+                                                                          pose_names]
+    if len(names) != n_poses:
+        raise ValueError("pose_names must have one name per pose")
+    ref = int(reference_pose)
+    if not 0 <= ref < n_poses:
+        raise ValueError(f"reference_pose {ref} out of range 0..{n_poses - 1}")
+    if projector_side is not None and projector_side not in PROJECTOR_SIDES:
+        raise ValueError(f"projector_side must be one of {sorted(PROJECTOR_SIDES)}, got "
+                         f"{projector_side!r}")
+    warns = list(warnings)
     common = dict(principal_point=principal_point, principal_point_sigma=principal_point_sigma,
                   outlier_threshold=outlier_threshold, max_rounds=max_rounds,
                   min_points=min_points, min_poses=min(min_poses, 3), pose_names=names,
                   grid_shape=grid_shape)
-    cal_c = calibrate_device(P, cam, pixel_size=camera_pixel_size, image_size=camera_size,
-                             name="camera", **common)
-    cal_p = calibrate_device(P, proj, pixel_size=projector_pixel_size,
-                             image_size=projector_size, name="projector", **common)
-    both = cal_c.used & cal_p.used
+    alone = {d: calibrate_device(P, obs[d], pixel_size=pixel_sizes.get(d),
+                                 image_size=image_sizes[d], name=d, model=models[d],
+                                 **common) for d in names_d}
+    both = np.logical_and.reduce([alone[d].used for d in names_d])
     for i in range(n_poses):
         if not both[i] and not any(w.startswith(f"pose {names[i]}:") for w in warns):
-            who = [n for n, c in (("camera", cal_c), ("projector", cal_p)) if not c.used[i]]
+            who = [d for d in names_d if not alone[d].used[i]]
             warns.append(f"pose {names[i]}: too few markers seen by the {' and '.join(who)}; "
                          "pose not used")
     if not both[ref]:
         raise CalibrationError(f"reference pose {names[ref]} is not usable (too few markers "
-                               "seen by both devices): the world frame is the target there")
+                               "seen by every device): the world frame is the target there")
     poses = [ref] + [i for i in np.flatnonzero(both) if i != ref]
     if len(poses) < min_poses:
-        raise CalibrationError(f"{len(poses)} pose(s) seen by both devices, at least "
+        raise CalibrationError(f"{len(poses)} pose(s) seen by every device, at least "
                                f"{min_poses} needed")
-    R_ct, R_pt, R_pc, mirror, more = rig_rotations(
-        cal_c.device.model, cal_p.device.model, cal_c.R_dev_target[poses],
-        cal_p.R_dev_target[poses], projector_side)
+    proj_index = names_d.index("projector") if "projector" in names_d else None
+    R_dt, R_rel, mirror, more = joint_rotations(
+        [alone[d].device.model for d in names_d], [alone[d].R_dev_target[poses]
+                                                   for d in names_d],
+        projector_side, projector_index=proj_index)
     warns += more
     # degenerate pose sets: every target normal (in the camera) nearly the same
-    normals = R_ct[:, :, 2]
+    normals = R_dt[0][:, :, 2]
     spread = np.degrees(np.max(np.arccos(np.clip(normals @ normals[0], -1, 1))))
     if spread < 1.0:
         raise CalibrationError(
             f"the target has the same tilt in every pose (spread {spread:.2f} deg): depth "
             "cannot be calibrated; tilt the target in several directions")
-    R_cw = R_ct[0]
-    R_pw = R_pc @ R_cw
-    R_wt = np.array([chordal_mean([R_cw.T @ R_ct[j], R_pw.T @ R_pt[j]])
+    R_cw = R_dt[0][0]
+    R_dw = [R @ R_cw for R in R_rel]
+    R_wt = np.array([chordal_mean([R_dw[k].T @ R_dt[k][j] for k in range(len(names_d))])
                      for j in range(len(poses))])
     R_wt[0] = np.eye(3)
-    t_c = cal_c.t_dev[poses]
-    t_p = cal_p.t_dev[poses]
-    M = np.vstack([R_cw[:2], R_pw[:2]])
+    t_d = [alone[d].t_dev[poses] for d in names_d]
+    # t_dev(pose j) = R_dw T_j + t_dw (the rows each device sees); T_0 = 0
+    M = np.vstack([R_dw[k][:t_d[k].shape[1]] for k in range(len(names_d))])
     T = np.zeros((len(poses), 3))
     for j in range(1, len(poses)):
-        T[j] = np.linalg.lstsq(M, np.concatenate([t_c[j] - t_c[0], t_p[j] - t_p[0]]),
+        T[j] = np.linalg.lstsq(M, np.concatenate([t_d[k][j] - t_d[k][0]
+                                                  for k in range(len(names_d))]),
                                rcond=None)[0]
-    names_d = ("camera", "projector")
-    cam_size = tuple(int(v) for v in camera_size)
-    proj_size = tuple(int(v) for v in projector_size)
-    centre_c, sig_c = _pp_setup(principal_point, None, principal_point_sigma, cam_size)
-    centre_p, sig_p = _pp_setup(principal_point, None, principal_point_sigma, proj_size)
+    sizes = {d: tuple(int(v) for v in image_sizes[d]) for d in names_d}
+    pp = {d: _pp_setup(principal_point, None, principal_point_sigma, sizes[d])
+          for d in names_d}
     devs0 = []
-    for dev_alone, R_dw, t_d, centre in ((cal_c.device, R_cw, t_c[0], centre_c),
-                                          (cal_p.device, R_pw, t_p[0], centre_p)):
+    for k, d in enumerate(names_d):
+        dev_alone = alone[d].device
         p = dev_alone.to_params()
         if principal_point == "fixed":
-            for nm, val in zip(dev_alone.principal_point_names, centre, strict=True):
+            for nm, val in zip(dev_alone.principal_point_names, pp[d][0], strict=True):
                 p[dev_alone.param_names.index(nm)] = val
-        devs0.append(dev_alone.from_params(p).with_pose(R_dw, t_d))
+        devs0.append(dev_alone.from_params(p).with_pose(R_dw[k], t_d[k][0]))
     n_u = len(poses)
     layout = ParameterLayout(names_d, tuple(tuple(d.param_names) for d in devs0), n_u)
     free = np.ones(layout.size, dtype=bool)
     free[layout.pose_slice(0)] = False  # reference pose = world frame
     priors = []
-    for dname, dev, centre, sig in (("camera", devs0[0], centre_c, sig_c),
-                                    ("projector", devs0[1], centre_p, sig_p)):
-        pp = [f"{dname}.{n}" for n in dev.principal_point_names]
+    for k, d in enumerate(names_d):
+        ppn = [f"{d}.{n}" for n in devs0[k].principal_point_names]
         if principal_point == "fixed":
-            free[layout.indices(pp)] = False
+            free[layout.indices(ppn)] = False
         else:
-            priors += [(pp[0], centre[0], sig), (pp[1], centre[1], sig)]
-    sig0 = [max(cal_c.rms, 1e-6) / np.sqrt(2), max(cal_p.rms, 1e-6) / np.sqrt(2)]
+            centre, sig = pp[d]
+            priors += [(ppn[0], centre[0], sig), (ppn[1], centre[1], sig)]
+    sig0 = [max(alone[d].rms, 1e-6) / np.sqrt(2) for d in names_d]
 
     def build(obs_list, sigmas, prev):
         if prev is None:
@@ -280,20 +416,33 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
                              priors=priors, device_names=names_d)
 
     problem, x, keeps, outliers, sigmas = _adjust_with_rejection(
-        build, [cam, proj], [poses, poses], threshold=outlier_threshold,
-        max_rounds=max_rounds, names=list(names_d), pose_names=names,
-        grid_shape=grid_shape)
+        build, [obs[d] for d in names_d], [poses] * len(names_d),
+        threshold=outlier_threshold, max_rounds=max_rounds, names=list(names_d),
+        pose_names=names, grid_shape=grid_shape)
+    if marker_radius is not None and any(
+            dev.sees_depth for d, dev in zip(names_d, devs0, strict=True) if d != "projector"):
+        # perspective eccentricity: a circle's image centre is not the image of its
+        # centre; correct the observations with the current estimate and adjust again
+        for _ in range(2):
+            shift = _eccentricity(problem, x, names_d, poses, shape, float(marker_radius))
+            fixed = [obs[d] - shift[k] for k, d in enumerate(names_d)]
+            prev = (problem, x)
+            problem, x, keeps, outliers, sigmas = _adjust_with_rejection(
+                lambda o, s_, p_, prev=prev: build(o, s_, prev if p_ is None else p_),
+                fixed, [poses] * len(names_d), threshold=outlier_threshold,
+                max_rounds=max_rounds, names=list(names_d), pose_names=names,
+                grid_shape=grid_shape)
     problem, x = problem.rebased(x)
     devs, R_wt_final, T_wt_final = problem.unpack(x)
-    rig = Rig(camera=devs[0], projector=devs[1])
+    cams = {d: devs[k] for k, d in enumerate(names_d) if d != "projector"}
+    rig = Rig(cameras=cams, projector=None if proj_index is None else devs[proj_index])
     residuals = []
-    for d in range(2):
-        o = problem.obs[d]
-        res = np.full(cam.shape, np.nan)
-        res[np.asarray(poses)[o.pose], o.point] = problem.predict(x, d) - o.uv
+    for k in range(len(names_d)):
+        o = problem.obs[k]
+        res = np.full(shape, np.nan)
+        res[np.asarray(poses)[o.pose], o.point] = problem.predict(x, k) - o.uv
         residuals.append(res)
-    rms_c, per_c = _rms(residuals[0], n_poses)
-    rms_p, per_p = _rms(residuals[1], n_poses)
+    rms = [_rms(r, n_poses) for r in residuals]
     cov_free, _ = problem.covariance(x)
     if cov_free is None:
         raise CalibrationError("the poses do not determine the rig (singular normal "
@@ -308,10 +457,10 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
             f"{np.nanmax(rot_std):.3g} rad): tilt the target more, in several directions")
     params = np.concatenate([d.to_params() for d in devs])
     if principal_point == "estimate":
-        weak = tuple(_pp_weak(dev, std[layout.device_slice(d)], size) for d, (dev, size)
-                     in enumerate(((devs[0], cam_size), (devs[1], proj_size))))
+        weak = tuple(_pp_weak(devs[k], std[layout.device_slice(k)], sizes[d])
+                     for k, d in enumerate(names_d))
     else:
-        weak = (True, True)
+        weak = (True,) * len(names_d)
     for dname, w in zip(names_d, weak, strict=True):
         if w and principal_point == "estimate":
             warns.append(f"{dname}: the principal point is weakly determined by the data "
@@ -323,15 +472,87 @@ def calibrate_rig(points_target, camera_observations, projector_observations, *,
     T_all[poses] = T_wt_final
     used = np.zeros(n_poses, dtype=bool)
     used[poses] = True
+    reports = {d: DeviceReport(model=devs[k].model, sigma=float(sigmas[k]),
+                               observations=obs[d].copy(), residuals=residuals[k],
+                               rms=rms[k][0], rms_per_pose=rms[k][1],
+                               principal_point_weak=bool(weak[k]), alone=alone[d])
+               for k, d in enumerate(names_d)}
+    nan_arr = np.full(shape, np.nan)
+    pr = reports.get("projector")
     return RigCalibration(
         rig=rig, pose_names=tuple(names), reference_pose=names[ref], used=used,
         R_world_target=R_all, t_world_target=T_all, points_target=P.copy(),
         grid_shape=None if grid_shape is None else tuple(int(v) for v in grid_shape),
         parameter_names=param_names, parameters=params, covariance=cov, std=std,
-        sigma_camera=float(sigmas[0]), sigma_projector=float(sigmas[1]),
-        residuals_camera=residuals[0],
-        residuals_projector=residuals[1], rms_camera=rms_c, rms_projector=rms_p,
-        rms_per_pose=np.column_stack([per_c, per_p]), outliers=tuple(outliers),
-        camera_observations=cam.copy(), projector_observations=proj.copy(),
-        principal_point=principal_point, principal_point_weak=weak, mirror=mirror,
-        warnings=tuple(warns), camera_alone=cal_c, projector_alone=cal_p)
+        sigma_camera=reports["camera"].sigma,
+        sigma_projector=pr.sigma if pr else float("nan"),
+        residuals_camera=reports["camera"].residuals,
+        residuals_projector=pr.residuals if pr else nan_arr,
+        rms_camera=reports["camera"].rms, rms_projector=pr.rms if pr else float("nan"),
+        rms_per_pose=np.column_stack([reports[d].rms_per_pose for d in names_d]),
+        outliers=tuple(outliers),
+        camera_observations=obs["camera"].copy(),
+        projector_observations=obs["projector"].copy() if pr else nan_arr.copy(),
+        principal_point=principal_point,
+        principal_point_weak=tuple(reports[d].principal_point_weak for d in names_d),
+        mirror=mirror, warnings=tuple(warns), camera_alone=alone["camera"],
+        projector_alone=alone.get("projector"), devices=reports,
+        **({} if "camera_2" not in reports else dict(
+            rms_camera_2=reports["camera_2"].rms, sigma_camera_2=reports["camera_2"].sigma,
+            residuals_camera_2=reports["camera_2"].residuals,
+            camera_2_observations=reports["camera_2"].observations)))
+
+
+def _circle_image_centre(dev, R, T, centres_target, radius, n: int = 64):
+    """Centres (m, 2) px of the images of circles of ``radius`` mm centred at
+    ``centres_target`` (m, 3) on the target plane at pose (R (m, 3, 3), T (m, 3)): the
+    area centroids of the projected boundaries (the ellipse centre without distortion)."""
+    th = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    ring = np.stack([np.cos(th), np.sin(th), np.zeros(n)], axis=1) * radius  # (n, 3)
+    pts = centres_target[:, None, :] + ring[None, :, :]                      # (m, n, 3)
+    X = np.einsum("mij,mnj->mni", R, pts) + T[:, None, :]
+    u, v = dev.project(X)
+    un, vn = np.roll(u, -1, axis=1), np.roll(v, -1, axis=1)
+    cr = u * vn - un * v
+    A = cr.sum(axis=1) / 2.0
+    cx = ((u + un) * cr).sum(axis=1) / (6.0 * A)
+    cy = ((v + vn) * cr).sum(axis=1) / (6.0 * A)
+    return np.stack([cx, cy], axis=1)
+
+
+def _eccentricity(problem: BundleProblem, x, names_d, poses, shape, radius):
+    """Per device (n_poses, n_points, 2) px: observed centre minus image of the centre,
+    predicted at ``x`` (zero for unused poses and for telecentric cameras)."""
+    devs, R_wt, T_wt = problem.unpack(x)
+    n_u = len(poses)
+    P = problem.P
+    m = P.shape[0]
+    pose_idx = np.repeat(np.arange(n_u), m)
+    pt_idx = np.tile(np.arange(m), n_u)
+    R = R_wt[pose_idx]
+    T = T_wt[pose_idx]
+    Xc = np.einsum("mij,mj->mi", R, P[pt_idx]) + T
+    out = []
+    first = devs[0]
+    cam_centre = None
+    for k, d in enumerate(names_d):
+        dev = devs[k]
+        shift = np.zeros((len(pt_idx), 2))
+        if d != "projector" and dev.sees_depth:
+            c = _circle_image_centre(dev, R, T, P[pt_idx], radius)
+            shift = c - np.stack(dev.project(Xc), axis=1)
+            if k == 0:
+                cam_centre = c
+        elif d == "projector" and cam_centre is not None:
+            # the plate point the first camera sees at its circle image's centre
+            rays = first.backproject(cam_centre[:, 0], cam_centre[:, 1])
+            o = np.broadcast_to(rays.origin, Xc.shape)
+            dirs = np.broadcast_to(rays.direction, Xc.shape)
+            nrm = R[:, :, 2]
+            s = np.einsum("mi,mi->m", T - o, nrm) / np.einsum("mi,mi->m", dirs, nrm)
+            Xs = o + s[:, None] * dirs
+            shift = np.stack(dev.project(Xs), axis=1) - np.stack(dev.project(Xc), axis=1)
+        full = np.zeros(shape)
+        full[np.asarray(poses)[pose_idx], pt_idx] = shift
+        out.append(full)
+    return out

@@ -33,6 +33,7 @@ __all__ = [
     "MIRROR_HELP",
     "MirrorAmbiguityError",
     "PROJECTOR_SIDES",
+    "branches_against",
     "DeviceStart",
     "choose_branches",
     "closed_form_device",
@@ -272,3 +273,32 @@ def resolve_rotations(R_cam_target, R_proj_target, projector_side: str | None):
     if mirror_needed(R_pc, projector_side):
         R_ct, R_pt, R_pc = mirror_pose(R_ct), mirror_pose(R_pt), mirror_pose(R_pc)
     return R_ct, R_pt, R_pc, f"projector_side={projector_side}", []
+
+
+def branches_against(R_anchor, R_dev):
+    """Per-pose mirror branch of a telecentric device that keeps it rigid with respect to
+    an anchor device whose rotations are settled (e.g. a pinhole device, which sees depth
+    and so has no mirror ambiguity).
+
+    ``R_anchor``, ``R_dev``: (n, 3, 3) target -> device rotations of the same poses.
+    Returns ``R_dev`` (n, 3, 3) on the branch (one per pose) that makes
+    ``R_dev R_anchor^T`` most nearly constant (both branches of the reference pose are
+    tried; the one with the smaller total spread wins).
+    """
+    R_a = np.asarray(R_anchor, dtype=float)
+    R_d = np.asarray(R_dev, dtype=float)
+    best = None
+    for q0 in (0, 1):
+        first = mirror_pose(R_d[0]) if q0 else R_d[0]
+        ref = first @ R_a[0].T
+        chosen = [first]
+        cost = 0.0
+        for i in range(1, R_d.shape[0]):
+            cands = [R_d[i], mirror_pose(R_d[i])]
+            dist = [np.linalg.norm(c @ R_a[i].T - ref) for c in cands]
+            k = int(np.argmin(dist))
+            cost += dist[k]
+            chosen.append(cands[k])
+        if best is None or cost < best[0]:
+            best = (cost, np.array(chosen))
+    return best[1]

@@ -27,7 +27,17 @@ class _PP(StrEnum):
 
 
 _UNITS = {"m": "", "u0": "px", "v0": "px", "k1": "1/mm^2", "s1": "1/mm", "s2": "1/mm",
-          "rot_x": "rad", "rot_y": "rad", "rot_z": "rad", "tx": "mm", "ty": "mm"}
+          "rot_x": "rad", "rot_y": "rad", "rot_z": "rad", "tx": "mm", "ty": "mm",
+          "fx": "px", "fy": "px", "cx": "px", "cy": "px", "k2": "", "p1": "", "p2": "",
+          "k3": "", "tz": "mm"}
+_PINHOLE_UNITS = {"k1": ""}  # OpenCV's coefficients act on normalised coordinates
+
+
+def _devices(calib) -> dict:
+    devs = dict(calib.rig.cameras)
+    if calib.rig.projector is not None:
+        devs["projector"] = calib.rig.projector
+    return devs
 
 
 def _fmt(v: float, s: float) -> str:
@@ -43,9 +53,10 @@ def parameter_table(calib):
     table = Table(title="rig parameters (± one standard deviation)")
     table.add_column("parameter")
     table.add_column("unit")
-    table.add_column("camera", justify="right")
-    table.add_column("projector", justify="right")
-    devices = {"camera": calib.rig.camera, "projector": calib.rig.projector}
+    devices = _devices(calib)
+    for dname, dev in devices.items():
+        table.add_column(dname if dev.model == "telecentric" else f"{dname} ({dev.model})",
+                         justify="right")
     names = list(dict.fromkeys(n for d in devices.values() for n in d.param_names))
 
     def cell(dname, pname):
@@ -58,13 +69,21 @@ def parameter_table(calib):
             value = dev.rotvec["xyz".index(pname[-1])]
         return _fmt(value, calib.std[i])
 
+    models = {d.model for d in devices.values()}
     for name in names:
         label = f"rotation vector {name[-1]}" if name.startswith("rot_") else name
         unit = "rad" if name.startswith("rot_") else _UNITS.get(name, "mm")
-        table.add_row(label, unit, cell("camera", name), cell("projector", name))
-    table.add_row("RMS reprojection", "px", f"{calib.rms_camera:.4f}",
-                  f"{calib.rms_projector:.4f}")
+        if name in _PINHOLE_UNITS and "pinhole" in models:
+            unit = f"{unit} / {_PINHOLE_UNITS[name] or '-'}" if unit else unit
+        table.add_row(label, unit, *(cell(d, name) for d in devices))
+    table.add_row("RMS reprojection", "px", *(f"{_rms_of(calib, d):.4f}" for d in devices))
     return table
+
+
+def _rms_of(calib, dname: str) -> float:
+    if calib.devices:
+        return calib.devices[dname].rms
+    return float(getattr(calib, f"rms_{dname}", float("nan")))
 
 
 def _pose_table(calib):
@@ -72,15 +91,16 @@ def _pose_table(calib):
 
     table = Table(title="per-pose RMS reprojection error (px)")
     table.add_column("pose")
-    table.add_column("camera", justify="right")
-    table.add_column("projector", justify="right")
+    devices = list(_devices(calib))
+    for d in devices:
+        table.add_column(d, justify="right")
     for i, name in enumerate(calib.pose_names):
         if calib.used[i]:
-            c, p = calib.rms_per_pose[i]
+            vals = list(calib.rms_per_pose[i])  # one column per device, in order
             table.add_row(name + (" (reference)" if name == calib.reference_pose else ""),
-                          f"{c:.4f}", f"{p:.4f}")
+                          *(f"{v:.4f}" for v in vals))
         else:
-            table.add_row(name, "not used", "not used")
+            table.add_row(name, *(["not used"] * len(devices)))
     return table
 
 
@@ -101,7 +121,7 @@ def _projector_side(man, option, calib_dir):
         return given, "given by --projector-side"
     if noted is not None:
         return noted, "from calibration.json"
-    models = {getattr(man, f"{dev}_model", "telecentric") for dev in ("camera", "projector")}
+    models = set(getattr(man, "models", {"camera": "telecentric"}).values())
     if models == {"telecentric"}:
         raise InputError(f"{calib_dir}: {MIRROR_HELP}")
     return None, ""
@@ -117,7 +137,8 @@ def calibrate_cmd(
         help="Where the projector is, seen in the camera image (the shadow of an upright "
              "pin falls away from it). A rig of two telecentric devices calibrated from a "
              "flat target cannot tell itself from its mirror image (heights of opposite "
-             "sign): it needs this, or \"projector_side\" in calibration.json."),
+             "sign): it needs this, or \"projector_side\" in calibration.json. A rig with a "
+             "pinhole device needs no side."),
     principal_point: _PP = typer.Option(
         _PP.estimate, "--principal-point",
         help="estimate: free with a weak prior at the image centre; fixed: at the centre."),
@@ -130,8 +151,11 @@ def calibrate_cmd(
     """Calibrate camera and projector from a calibration set (one scan per plate pose).
 
     Detects the circle grid in each pose, reads the projector coordinates of each circle
-    centre from the decoded fringes, calibrates both devices and adjusts them jointly.
-    Poses whose grid cannot be found are skipped with a warning.
+    centre from the decoded fringes, calibrates each device alone with the closed form
+    of its model (telecentric or pinhole, from calibration.json) and adjusts them all
+    jointly. A two-camera set (camera_2 in calibration.json) calibrates both cameras,
+    and the projector too when calibration.json names it. Poses whose grid cannot be
+    found are skipped with a warning.
 
     Example: telefringe calibrate sim_cal/calibration -o rig.json --report cal_report
     """
@@ -154,14 +178,20 @@ def calibrate_cmd(
     with progress_bar("calibration poses", len(man.poses)) as advance:
         def scans():
             for name in man.poses:
-                yield name, read_scan(Path(calib_dir) / name)
+                if len(man.cameras) == 1:
+                    yield name, read_scan(Path(calib_dir) / name)
+                else:
+                    yield name, {cam: read_scan(Path(calib_dir) / man.scan_folder(name, cam))
+                                 for cam in man.cameras}
                 advance()
 
         try:
             calib = calibrate_from_scans(
                 scans(), man.target, man.camera_pixel_size, man.projector_pixel_size,
-                man.reference_pose, projector_side=side, principal_point=principal_point.value,
-                decode_options={"gamma_correction": bool(gamma)})
+                man.reference_pose, projector_side=side,
+                principal_point=principal_point.value,
+                decode_options={"gamma_correction": bool(gamma)}, models=man.models,
+                pixel_sizes=man.pixel_sizes)
         except CalibrationError as exc:
             raise InputError(f"{calib_dir}: {exc}") from None
     if side is not None and calib.mirror == f"projector_side={side}":

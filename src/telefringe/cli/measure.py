@@ -17,6 +17,59 @@ measure_app = typer.Typer(
 )
 
 _JSON_HELP = "Also write the results to this JSON file."
+_RIG_HELP = ("rig.json of the calibration that made the reconstruction: adds the "
+             "calibration's uncertainty (its parameter covariance, shared by every point) "
+             "to each result's u and U (k = 2). Without it u holds the noise only.")
+
+
+def _load_calibration(rig: Path | None):
+    """The RigCalibration of ``--rig`` (None without it). User problems raise InputError."""
+    if rig is None:
+        return None
+    import numpy as np
+
+    from telefringe.io.errors import InputError
+    from telefringe.io.rig_json import load_rig
+
+    cal = load_rig(rig)
+    if not np.any(np.isfinite(cal.covariance)):
+        raise InputError(f"{rig}: the rig has no parameter covariance (a bare rig.json): "
+                         "the calibration's uncertainty is unknown; leave --rig out")
+    return cal
+
+
+def _with_calibration(out, fn, m, cloud, cal):
+    """``fn(m, cloud, cal)`` (the measurement with its uncertainty), or ``m`` without a
+    calibration; a rig that does not fit the cloud raises InputError."""
+    if cal is None:
+        info("[yellow]note:[/yellow] u and U hold the noise only (give --rig rig.json for "
+             "the calibration's part)")
+        return m
+    size = cal.rig.camera.image_size
+    if size is not None and tuple(size) != (cloud.shape[1], cloud.shape[0]):
+        _fail(out, f"the rig's camera is {size[0]} x {size[1]} px but the reconstruction is "
+                   f"{cloud.shape[1]} x {cloud.shape[0]}: --rig must be the rig that made it")
+    try:
+        return fn(m, cloud, cal)
+    except (ValueError, _linalg_error()) as exc:
+        _fail(out, f"the calibration's uncertainty cannot be propagated with this rig: {exc}")
+
+
+def _linalg_error():
+    import numpy as np
+
+    return np.linalg.LinAlgError
+
+
+def _u_line(name: str, q, *, scale: float = 1000.0, unit: str = "um") -> str:
+    """``name: u = .. (noise .., calibration ..), U (k=2) = ..``."""
+    import numpy as np
+
+    def f(x):
+        return "n/a" if not np.isfinite(x) else f"{float(x) * scale:.3g} {unit}"
+
+    return (f"{name}: u = {f(q.u)} (noise {f(q.u_noise)}, calibration {f(q.u_calibration)}),"
+            f" U (k={q.k:g}) = {f(q.U)}")
 
 
 def _load(out: Path):
@@ -60,9 +113,10 @@ def _check_outputs(paths, force: bool) -> None:
 
 # --------------------------------------------------------------------------------------
 def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3.0,
-                         dark: bool = True):
+                         dark: bool = True, calibration=None):
     """Detect the circle grid in ``out``'s texture and measure the plate
-    (PlateMeasurement). User problems raise InputError."""
+    (PlateMeasurement; with a ``calibration``, a RigCalibration, its uncertainty
+    including the calibration's). User problems raise InputError."""
     from telefringe.metrology import measure_plate
     from telefringe.targets.circle_grid import detect_circle_grid
 
@@ -75,9 +129,12 @@ def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3
     if not det:
         _fail(out, f"the {rows} x {cols} circle grid was not found: {det.reason}")
     try:
-        return measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch)
+        m = measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch)
     except _metrology_errors() as exc:
         _fail(out, exc)
+    from telefringe.metrology.uncertainty import plate_uncertainty
+
+    return _with_calibration(out, plate_uncertainty, m, cloud, calibration)
 
 
 def plate_cmd(
@@ -86,19 +143,23 @@ def plate_cmd(
     cols: int = typer.Option(11, "--cols", help="Marker columns of the plate."),
     pitch: float = typer.Option(3.0, "--pitch", help="Nominal marker pitch (mm)."),
     dark: bool = typer.Option(True, "--dark/--light", help="Dark markers on a light plate."),
+    rig: Path = typer.Option(None, "--rig", help=_RIG_HELP),
     json_path: Path = typer.Option(None, "--json", help=_JSON_HELP),
     force: bool = typer.Option(False, "--force", help="Replace existing output files."),
 ):
     """Circle-marker plate: plane height above the reference (Z), flatness, and distances
     between neighbouring markers along X and Y (mean, abs error, std), as in the paper's
-    Table 3.
+    Table 3; with --rig, the standard uncertainty u and expanded U (k = 2) of Z, tilt and
+    mean spacings including the calibration's.
 
-    Example: telefringe measure plate plate_3d --json plate.json
+    Example: telefringe measure plate plate_3d --rig rig.json --json plate.json
     """
     from telefringe.io.reports import plate_summary
 
     _check_outputs([json_path], force)
-    m = measure_plate_folder(out, rows=rows, cols=cols, pitch=pitch, dark=dark)
+    cal = _load_calibration(rig)
+    m = measure_plate_folder(out, rows=rows, cols=cols, pitch=pitch, dark=dark,
+                             calibration=cal)
     sp = m.spacing
     info(f"plane: Z = {m.z.distance:.5f} mm (+- {_um(m.z.sigma)}), tilt "
          f"{m.z.angle_deg:.4f} deg, flatness {_um(m.plane.flatness)}, rms {_um(m.plane.rms)}")
@@ -107,6 +168,8 @@ def plate_cmd(
          f"({sp.n_x} distances)")
     info(f"Y: mean {sp.mean_y:.4f} mm, abs err {_um(sp.abs_err_y)}, std {_um(sp.std_y)} "
          f"({sp.n_y} distances)")
+    _report_uncertainty(m.uncertainty, {"z": "Z", "tilt_deg": "tilt", "spacing_x": "X mean",
+                                        "spacing_y": "Y mean"})
     _save_json(json_path, plate_summary(m), force)
 
 
@@ -115,23 +178,28 @@ def sphere_cmd(
     min_height: float = typer.Option(None, "--min-height",
                                      help="Height above the base plane (mm) from which a "
                                           "point belongs to the sphere (default: automatic)."),
+    rig: Path = typer.Option(None, "--rig", help=_RIG_HELP),
     json_path: Path = typer.Option(None, "--json", help=_JSON_HELP),
     force: bool = typer.Option(False, "--force", help="Replace existing output files."),
 ):
     """Sphere standing on a plane: radius, centre and form error (algebraic start,
-    geometric least squares, robust).
+    geometric least squares, robust); with --rig, u and U (k = 2) of radius and centre
+    including the calibration's.
 
-    Example: telefringe measure sphere sphere_3d --json sphere.json
+    Example: telefringe measure sphere sphere_3d --rig rig.json --json sphere.json
     """
     from telefringe.io.reports import sphere_summary
     from telefringe.metrology import measure_sphere
+    from telefringe.metrology.uncertainty import sphere_uncertainty
 
     _check_outputs([json_path], force)
+    cal = _load_calibration(rig)
     cloud, _ = _load(out)
     try:
         sm = measure_sphere(cloud, min_height=min_height)
     except _metrology_errors() as exc:
         _fail(out, exc)
+    sm = _with_calibration(out, sphere_uncertainty, sm, cloud, cal)
     f, base = sm.sphere, sm.base
     if base is None:
         info("[yellow]warning:[/yellow] no base plane holds 20 % of the points: every point "
@@ -141,12 +209,17 @@ def sphere_cmd(
     info(f"centre ({c[0]:.4f}, {c[1]:.4f}, {c[2]:.4f}) mm")
     info(f"form error {_um(f.form_error)} (peak-to-valley), rms {_um(f.rms)}, "
          f"{f.n_inliers} points")
-    _save_json(json_path, sphere_summary(f, base, region=sm.region), force)
+    _report_uncertainty(sm.uncertainty, {"radius": "radius", "centre": "centre"})
+    _save_json(json_path, sphere_summary(f, base, region=sm.region,
+                                         uncertainty=sm.uncertainty), force)
 
 
 def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,
-                       pitch: float = 0.8, diameter: float = 0.45, free_radius: bool = False):
-    """Measure the BGA in ``out`` (BGAMeasurement). User problems raise InputError.
+                       pitch: float = 0.8, diameter: float = 0.45, free_radius: bool = False,
+                       calibration=None):
+    """Measure the BGA in ``out`` (BGAMeasurement; with a ``calibration``, a
+    RigCalibration, its uncertainty including the calibration's). User problems raise
+    InputError.
     ``free_radius``: fit each cap's radius too (diameters reported, apex heights less
     accurate) instead of the nominal-radius fit through the point-spread model."""
     from telefringe.io.points_npz import load_points
@@ -158,9 +231,12 @@ def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,
         nominal = BGANominal(rows=rows, cols=cols, pitch_mm=pitch, ball_diameter_mm=diameter)
         # the radiance image locates each ball by its specular highlight (better pitch)
         options = BGAOptions(cap_model="free" if free_radius else "psf")
-        return measure_bga(pf.cloud, nominal, image=pf.radiance, options=options)
+        m = measure_bga(pf.cloud, nominal, image=pf.radiance, options=options)
     except _metrology_errors() as exc:
         _fail(out, exc)
+    from telefringe.metrology.uncertainty import bga_uncertainty
+
+    return _with_calibration(out, bga_uncertainty, m, pf.cloud, calibration)
 
 
 def bga_cmd(
@@ -179,6 +255,7 @@ def bga_cmd(
         help="Fit each ball's radius as well and report diameters. By default the balls "
              "are spheres of the nominal diameter seen through the camera's point spread "
              "(estimated from the caps): apex heights about 2x more accurate, no diameters."),
+    rig: Path = typer.Option(None, "--rig", help=_RIG_HELP),
     json_path: Path = typer.Option(None, "--json", help=_JSON_HELP),
     force: bool = typer.Option(False, "--force", help="Replace existing output files."),
 ):
@@ -187,9 +264,10 @@ def bga_cmd(
     not measured (with the reason); coplanarity against the JEDEC seating plane (the plane
     the package rests on, through three balls around its centre of gravity; every such
     plane when the package may rock, the largest reported). Writes a CSV per ball and a
-    PNG map.
+    PNG map. With --rig, u and U (k = 2) of heights, positions, pitch and coplanarity
+    include the calibration's uncertainty (in the CSV and the JSON too).
 
-    Example: telefringe measure bga bga_3d --rows 24 --cols 24 --json bga.json
+    Example: telefringe measure bga bga_3d --rows 24 --cols 24 --rig rig.json --json bga.json
     """
     from telefringe.io.bga_csv import write_bga_csv
     from telefringe.io.figures.bga_png import write_bga_png
@@ -199,8 +277,9 @@ def bga_cmd(
     csv_path = out / "bga.csv" if csv_path is None else csv_path
     map_path = out / "bga.png" if map_path is None else map_path
     _check_outputs([csv_path, map_path, json_path], force)
+    cal = _load_calibration(rig)
     m = measure_bga_folder(out, rows=rows, cols=cols, pitch=pitch, diameter=diameter,
-                           free_radius=free_radius)
+                           free_radius=free_radius, calibration=cal)
     import numpy as np
 
     info(f"balls measured: {m.n_balls} of {int(m.nominal.populated().sum())}; missing: "
@@ -222,6 +301,16 @@ def bga_cmd(
              f"{cop.alternatives.size} seating planes (its centre of gravity lies on an edge "
              "between them, within the balls' position uncertainty): coplanarity "
              + ", ".join(_um(v) for v in cop.alternatives) + "; the largest is reported")
+    if m.uncertainty is not None:
+        from telefringe.metrology.uncertainty import Uncertainty
+
+        h = m.uncertainty["height"]
+        med = Uncertainty(np.nan, np.median(h.u_noise), np.median(h.u_calibration))
+        _report_uncertainty({"height": med, "pitch_error_max": m.uncertainty["pitch_error_max"],
+                             "coplanarity": m.uncertainty["coplanarity"]},
+                            {"height": "apex height (median over balls)",
+                             "pitch_error_max": "pitch (the pair of the largest error)",
+                             "coplanarity": "coplanarity"})
     write_bga_csv(csv_path, m, force=force)
     write_bga_png(map_path, m, force=force)
     info(f"wrote {csv_path} and {map_path}")
@@ -231,28 +320,59 @@ def bga_cmd(
 def steps_cmd(
     out: Path = typer.Argument(..., help="Reconstruction folder (points.npz)."),
     min_step: float = typer.Option(0.05, "--min-step", help="Smallest step to detect (mm)."),
+    rig: Path = typer.Option(None, "--rig", help=_RIG_HELP),
     json_path: Path = typer.Option(None, "--json", help=_JSON_HELP),
     force: bool = typer.Option(False, "--force", help="Replace existing output files."),
 ):
     """Step gauge: the heights of its flat levels (parallel planes fitted jointly) and of
-    each step.
+    each step; with --rig, u and U (k = 2) including the calibration's.
 
-    Example: telefringe measure steps steps_3d --json steps.json
+    Example: telefringe measure steps steps_3d --rig rig.json --json steps.json
     """
     from telefringe.io.reports import steps_summary
     from telefringe.metrology import measure_steps
+    from telefringe.metrology.uncertainty import steps_uncertainty
 
     _check_outputs([json_path], force)
+    cal = _load_calibration(rig)
     cloud, _ = _load(out)
     try:
         m = measure_steps(cloud, min_step=min_step)
     except _metrology_errors() as exc:
         _fail(out, exc)
+    m = _with_calibration(out, steps_uncertainty, m, cloud, cal)
     for k, (h, s, n) in enumerate(zip(m.heights, m.sigma_heights, m.n_points, strict=True)):
         info(f"level {k}: {h:.4f} mm above level 0 (+- {_um(s)}), {n} points")
     for k, (h, s) in enumerate(zip(m.step_heights, m.sigma_steps, strict=True)):
         info(f"step {k} -> {k + 1}: {h:.4f} mm (+- {_um(s)})")
+    if m.uncertainty is not None:
+        q = m.uncertainty["step_heights"]
+        from telefringe.metrology.uncertainty import Uncertainty
+
+        _report_uncertainty({f"step {k} -> {k + 1}": Uncertainty(
+            q.value[k], q.u_noise[k], q.u_calibration[k]) for k in range(q.value.size)})
     _save_json(json_path, steps_summary(m), force)
+
+
+def _report_uncertainty(unc, labels=None) -> None:
+    """One line per quantity of a measurement's ``uncertainty`` (nothing without one)."""
+    if unc is None:
+        return
+    import numpy as np
+
+    labels = labels or {}
+    for name, q in unc.items():
+        label = labels.get(name, name)
+        if np.ndim(q.value) == 0:
+            deg = name.endswith("_deg")
+            info(_u_line(label, q, scale=1.0 if deg else 1000.0, unit="deg" if deg else "um"))
+        else:  # a vector (a centre): one line per coordinate
+            for c, axis in enumerate("xyz"[:np.size(q.value)]):
+                from telefringe.metrology.uncertainty import Uncertainty
+
+                info(_u_line(f"{label} {axis}", Uncertainty(
+                    np.ravel(q.value)[c], np.ravel(q.u_noise)[c],
+                    np.ravel(q.u_calibration)[c])))
 
 
 measure_app.command("plate")(plate_cmd)

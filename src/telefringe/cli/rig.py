@@ -19,6 +19,11 @@ _IMPORT_EXAMPLE = (f"telefringe rig import-opencv {_EXAMPLE_FILE} --projector-si
                    "-o relief_rig.json")
 
 
+class _World(StrEnum):
+    camera = "camera"
+    toward_camera = "toward-camera"
+
+
 class _Unit(StrEnum):
     mm = "mm"
     cm = "cm"
@@ -33,7 +38,7 @@ def _describe(name: str, dev, ref) -> str:
     text = (f"{name}: pinhole {w}x{h} px, fx {k.fx:.1f} fy {k.fy:.1f} cx {k.cx:.1f} "
             f"cy {k.cy:.1f} px")
     if dev is not ref:
-        c = dev.centre_world - ref.centre_world
+        c = ref.R_dev_world @ (dev.centre_world - ref.centre_world)  # in the camera's frame
         angle = np.degrees(np.arccos(np.clip(dev.R_dev_world[2] @ ref.R_dev_world[2], -1, 1)))
         text += (f"; centre at ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}) mm from the camera "
                  f"(baseline {np.linalg.norm(c):.1f} mm), axes {angle:.1f} deg apart")
@@ -58,6 +63,12 @@ def import_opencv(
         help="The projector's image size in px, where the file has no S4 (e.g. 1920x1080)."),
     unit: _Unit = typer.Option(_Unit.mm, "--unit",
                                help="Length unit of the file's translations (T, Tlp)."),
+    world: _World = typer.Option(
+        _World.camera, "--world",
+        help="The rig's world frame: 'camera' (the first camera's: Z is the depth along its "
+             "view) or 'toward-camera' (turned 180 deg about its x axis: y up the image, z "
+             "toward the camera, so heights are positive toward it as in a telefringe "
+             "calibration)."),
     force: bool = typer.Option(False, "--force", help="Replace an existing output."),
 ):
     """Make a rig.json from an OpenCV calibration (pinhole devices).
@@ -67,8 +78,9 @@ def import_opencv(
     (M1 D1 camera, M4 D4 projector, Rlp Tlp: X_projector = Rlp X_camera + Tlp); both may
     be in one file. M is the camera matrix, D the distortion (4, 5, 8, 12 or 14
     coefficients; beyond k1 k2 p1 p2 k3 they must be 0). Image sizes come from S (the
-    cameras), S2, S4 or the options. The world frame of the rig is the first camera's,
-    lengths in mm. Anything missing or inconsistent is refused and nothing is written.
+    cameras), S2, S4 or the options. The world frame of the rig is the first camera's
+    (or, with --world toward-camera, that frame turned so that z points toward the
+    camera), lengths in mm. Anything missing or inconsistent is refused and nothing is written.
 
     Example (from the repository, with the shared real data): see _IMPORT_EXAMPLE.
     """
@@ -76,10 +88,9 @@ def import_opencv(
     from telefringe.io.rig_json import save_rig
 
     imp = read_opencv_rig(files, camera_size=camera_size, camera_2_size=camera_2_size,
-                          projector_size=projector_size, unit=unit.value)
+                          projector_size=projector_size, unit=unit.value, world=world.value)
     save_rig(out, imp.rig, force=force, source=imp.source(files),
-             world_definition="the first camera's frame (X_world = X_camera; x along its "
-                              "columns, y along its rows, z along its viewing direction)")
+             world_definition=imp.world_definition)
     rig = imp.rig
     info(f"wrote {out}: {imp.names}")
     for name, dev in list(rig.cameras.items()) + [("projector", rig.projector)]:

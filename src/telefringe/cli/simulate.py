@@ -5,6 +5,11 @@ Output layout (OUT is a new folder; ground truth is never inside a scan folder):
     OUT/calibration/           a calibration set (calibration.json + pose_00, pose_01, ...)
     OUT/scan/                  a scan folder (scan.json + PNG images)
     OUT/truth/                 rig_true.json and, per scan, NAME.npz + NAME.json
+
+A two-camera rig (``stereo``) writes one scan per camera: ``pose_00/camera/`` and
+``pose_00/camera_2/`` in a calibration set, ``OUT/scan/camera/`` and
+``OUT/scan/camera_2/`` for a scan; its truth files are named ``NAME_camera``,
+``NAME_camera_2``.
 """
 
 from __future__ import annotations
@@ -22,6 +27,9 @@ __all__ = ["register"]
 class _Rig(StrEnum):
     paper = "paper"
     fast = "fast"
+    mixed = "mixed"
+    macro = "macro"
+    stereo = "stereo"
 
 
 class _Scene(StrEnum):
@@ -54,7 +62,7 @@ def _check_options(*, seed: int, poses: int | None = None, z: float | None = Non
     if poses is not None and not 4 <= poses <= 200:
         raise InputError(f"--poses must be between 4 and 200, got {poses}")
     if z is not None and not -10.0 <= z <= 10.0:
-        raise InputError(f"--z must be within +-10 mm (the depth of field is 5 mm), got {z}")
+        raise InputError(f"--z must be within +-10 mm, got {z}")
     if bit_depth is not None and bit_depth not in (8, 12, 16):
         raise InputError(f"--bit-depth must be 8, 12 or 16, got {bit_depth}")
 
@@ -68,6 +76,11 @@ def calibration(
     force: bool = typer.Option(False, "--force", help="Replace OUT if it exists."),
 ):
     """Simulate a calibration set: the 9 x 11 circle plate at several poses.
+
+    Rigs: paper and fast (telecentric camera and projector), mixed (telecentric camera,
+    pinhole projector), macro (pinhole camera and projector), stereo (two pinhole
+    cameras and a pinhole projector: one scan per camera in pose_NN/camera and
+    pose_NN/camera_2).
 
     Example: telefringe simulate calibration sim_cal --rig paper --poses 12
     """
@@ -95,16 +108,22 @@ def calibration(
         cal_dir.mkdir()
         truth_dir.mkdir()
         write_rig_truth(truth_dir, vrig)
+        cams = vrig.camera_names
+        two = len(cams) > 1
         with progress_bar(f"rendering {len(pose_list)} poses ({vrig.name} rig)",
-                          len(pose_list)) as advance:
-            for name, scan, truth, pose in iter_calibration_set(
-                    vrig, pose_list, seed=seed, progress=_advance_by(advance)):
-                write_scan(cal_dir / name, scan)
-                write_truth(truth_dir, name, truth,
-                            extra={"pose": {"kind": pose.kind,
-                                            "R_world_target": pose.R_world_target,
-                                            "t_world_target": pose.t_world_target}})
-                detail(f"{name}: {pose.kind}")
+                          len(pose_list) * len(cams)) as advance:
+            for cam in cams:
+                for name, scan, truth, pose in iter_calibration_set(
+                        vrig, pose_list, seed=seed, camera=cam if two else None):
+                    dest = cal_dir / man.scan_folder(name, cam)
+                    dest.parent.mkdir(parents=True, exist_ok=True)
+                    write_scan(dest, scan)
+                    write_truth(truth_dir, f"{name}_{cam}" if two else name, truth,
+                                extra={"pose": {"kind": pose.kind,
+                                                "R_world_target": pose.R_world_target,
+                                                "t_world_target": pose.t_world_target}})
+                    detail(f"{man.scan_folder(name, cam)}: {pose.kind}")
+                    advance(1)
         write_calibration_manifest(cal_dir, man)
     info(f"wrote {out / 'calibration'} ({len(pose_list)} poses) and the ground truth in "
          f"{out / 'truth'}")
@@ -122,7 +141,8 @@ def scan(
     force: bool = typer.Option(False, "--force", help="Replace OUT if it exists."),
 ):
     """Simulate one scan of a scene (4-step fringes, 1/8/64 periods along u, 1/8/48
-    along v, white and black frames).
+    along v, white and black frames). A two-camera rig (stereo) writes OUT/scan/camera
+    and OUT/scan/camera_2.
 
     Example: telefringe simulate scan sim_bga --scene bga --hdr
     """
@@ -145,17 +165,26 @@ def scan(
     exposures = HDR_EXPOSURES if hdr else (1.0,)
     groups = default_groups(vrig)
     total = sum(g.count for g in groups) * len(exposures) + 2 + 4
+    cams = vrig.camera_names
+    two = len(cams) > 1
+    n = 0
     with atomic_dir(out, force=force) as tmp:
-        with progress_bar(f"rendering {scene.value} ({vrig.name} rig)", total) as advance:
-            result, truth = render_scan(vrig, sc, groups, exposures=exposures,
-                                        seed=seed, progress=_advance_by(advance))
-        write_scan(tmp / "scan", result)
         (tmp / "truth").mkdir()
         write_rig_truth(tmp / "truth", vrig)
-        write_truth(tmp / "truth", "scan", truth,
-                    extra={"scene": scene.value, "z_mm": z, "exposures": list(exposures),
-                           "seed": seed})
-    n = sum(s.shape[0] for s in result.stacks) + 2
+        for ci, cam in enumerate(cams):
+            view = vrig.for_camera(cam) if two else vrig
+            label = f"rendering {scene.value} ({vrig.name} rig{', ' + cam if two else ''})"
+            with progress_bar(label, total) as advance:
+                result, truth = render_scan(view, sc, groups, exposures=exposures,
+                                            seed=seed + 1000003 * ci,
+                                            progress=_advance_by(advance))
+            dest = tmp / "scan" / cam if two else tmp / "scan"
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            write_scan(dest, result)
+            write_truth(tmp / "truth", f"scan_{cam}" if two else "scan", truth,
+                        extra={"scene": scene.value, "z_mm": z, "exposures": list(exposures),
+                               "seed": seed, "camera": cam})
+            n += sum(s.shape[0] for s in result.stacks) + 2
     info(f"wrote {out / 'scan'} ({n} images) and the ground truth in {out / 'truth'}")
 
 
@@ -196,6 +225,9 @@ def acceptance(
     from telefringe.io.errors import InputError
 
     vrig = get_preset(rig.value)
+    if len(vrig.camera_names) > 1:
+        raise InputError(f"--rig {rig.value}: acceptance scans of a two-camera rig are not "
+                         "simulated (one camera and a projector: paper, fast, mixed, macro)")
     try:
         vol = measuring_volume(vrig)
         art, positions = acceptance_positions(vrig, vol)

@@ -1,6 +1,12 @@
 """Calibration sets (``calibration.json``, format ``telefringe-calibration-set`` v1, see
 docs/formats.md): a folder of scans, one per target pose. Validated reading and atomic
 writing of the manifest; the poses are read with :func:`telefringe.io.scan_json.read_scan`.
+
+Devices: ``camera``, ``projector`` and, for two cameras, ``camera_2``, each
+``{"model": "telecentric", "pixel_size_mm": [du, dv]}`` (the default model) or
+``{"model": "pinhole"}``. A two-camera set may leave out ``projector`` (the projector
+only codes the phase); each of its pose folders holds one scan per camera, in
+``<pose>/camera/`` and ``<pose>/camera_2/``.
 """
 
 from __future__ import annotations
@@ -29,9 +35,10 @@ __all__ = ["CALIB_FORMAT", "parse_calibration_manifest", "load_calibration_set",
 
 CALIB_FORMAT = "telefringe-calibration-set"
 
-_CAL_KEYS = {"format", "version", "target", "camera", "projector", "poses", "reference_pose",
-             "meta", "projector_side"}
-#: Values of the optional ``projector_side`` (where the projector is in the camera image).
+_CAL_KEYS = {"format", "version", "target", "camera", "camera_2", "projector", "poses",
+             "reference_pose", "projector_side", "meta"}
+#: Device models a calibration set may name.
+DEVICE_MODELS = ("telecentric", "pinhole")
 _SIDES = ("left", "right", "top", "bottom")
 _TARGET_KEYS = {"type", "rows", "cols", "pitch_mm", "diameter_mm", "circles"}
 
@@ -75,20 +82,36 @@ def parse_calibration_manifest(doc, *, folder: Path | None = None,
         if (is_num(t.get("pitch_mm")) and is_num(t.get("diameter_mm"))
                 and 0 < t["pitch_mm"] <= t["diameter_mm"]):
             probs.add("'target.diameter_mm' must be smaller than 'target.pitch_mm'")
-    sizes = {}
-    for dev in ("camera", "projector"):
+    sizes: dict = {}
+    models: dict = {}
+    two = "camera_2" in doc
+    for dev in ("camera", "camera_2", "projector"):
+        if dev not in doc and (dev == "camera_2" or (dev == "projector" and two)):
+            continue
         d = doc.get(dev)
         if not isinstance(d, dict):
-            probs.add(f"'{dev}' must be an object {{\"pixel_size_mm\": [du, dv]}}, got {_r(d)}")
+            probs.add(f"'{dev}' must be an object {{\"model\": \"telecentric\", "
+                      f"\"pixel_size_mm\": [du, dv]}} or {{\"model\": \"pinhole\"}}, "
+                      f"got {_r(d)}")
             continue
-        check_fields(d, {"pixel_size_mm"}, f"{dev}.", probs)
+        check_fields(d, {"model", "pixel_size_mm"}, f"{dev}.", probs)
+        model = d.get("model", "telecentric")
+        if model not in DEVICE_MODELS:
+            probs.add(f"'{dev}.model' must be one of {', '.join(DEVICE_MODELS)}, got "
+                      f"{_r(model)}")
+            continue
+        models[dev] = model
         ps = d.get("pixel_size_mm")
+        if ps is None and model == "pinhole":
+            continue
         if (not isinstance(ps, list) or len(ps) != 2
                 or not all(is_num(x) and 0 < x < 1 for x in ps)):
+            need = " (a telecentric device needs it)" if ps is None else ""
             probs.add(f"'{dev}.pixel_size_mm' must be [du, dv] in mm (0 < du, dv < 1), got "
-                      f"{_r(ps)}")
+                      f"{_r(ps)}{need}")
         else:
             sizes[dev] = (float(ps[0]), float(ps[1]))
+    cameras = ("camera", "camera_2") if two else ("camera",)
     poses = doc.get("poses")
     if not isinstance(poses, list) or not poses:
         probs.add(f"'poses' must be a non-empty list of scan folder names, got {_r(poses)}")
@@ -104,8 +127,17 @@ def parse_calibration_manifest(doc, *, folder: Path | None = None,
             probs.add(f"{what}: {_r(p)} is the same folder as {seen[ok[1]]}")
             continue
         seen[ok[1]] = what
-        if folder is not None and not (folder / p / "scan.json").is_file():
+        if folder is None:
+            continue
+        if not two and not (folder / p / "scan.json").is_file():
             probs.add(f"{what}: {_r(p)} is not a scan folder (no scan.json)")
+        for cam in cameras if two else ():
+            sub = check_rel_path(folder, f"{p}/{cam}", f"{what} ({cam})", probs,
+                                 kind="folder")
+            if sub is not None and not (folder / p / cam / "scan.json").is_file():
+                probs.add(f"{what}: {_r(p)}/{cam} is not a scan folder (no scan.json); a "
+                          "two-camera set holds one scan per camera in <pose>/camera and "
+                          "<pose>/camera_2")
     if "reference_pose" in doc:
         ref = doc["reference_pose"]
         if not isinstance(ref, str) or ref not in poses:
@@ -119,11 +151,11 @@ def parse_calibration_manifest(doc, *, folder: Path | None = None,
     probs.raise_if_any()
     target = CircleGridTarget(int(t["rows"]), int(t["cols"]), float(t["pitch_mm"]),
                               float(t["diameter_mm"]), t.get("circles", "dark-on-light"))
-    return CalibrationSetManifest(target=target, camera_pixel_size=sizes["camera"],
-                                  projector_pixel_size=sizes["projector"],
+    return CalibrationSetManifest(target=target, camera_pixel_size=sizes.get("camera"),
+                                  projector_pixel_size=sizes.get("projector"),
                                   poses=tuple(poses), reference_pose=ref,
                                   folder=str(folder) if folder is not None else "",
-                                  projector_side=side)
+                                  models=models, pixel_sizes=sizes, projector_side=side)
 
 
 def load_calibration_set(folder) -> CalibrationSetManifest:
@@ -136,19 +168,21 @@ def load_calibration_set(folder) -> CalibrationSetManifest:
     """
     folder, path = open_manifest(folder, "calibration.json", "calibration set")
     man = parse_calibration_manifest(read_json(path), folder=folder, where=str(path))
-    ref_pose = ref = None
-    for p in man.poses:
-        pm = load_scan_manifest(folder / p)
-        first = scan_image_names(pm)[0]
-        info = image_info(folder / p / first)
-        this = (pm.projector_width, pm.projector_height, info.cols, info.rows)
-        if ref is None:
-            ref_pose, ref = p, this
-        elif this != ref:
-            raise InputError(
-                f"{path}: poses differ: {ref_pose} has a {ref[0]} x {ref[1]} projector and "
-                f"{ref[2]} x {ref[3]} images, {p} has {this[0]} x {this[1]} and "
-                f"{this[2]} x {this[3]}")
+    for cam in man.cameras:
+        ref_pose = ref = None
+        for p in man.poses:
+            sub = man.scan_folder(p, cam)
+            pm = load_scan_manifest(folder / sub)
+            first = scan_image_names(pm)[0]
+            info = image_info(folder / sub / first)
+            this = (pm.projector_width, pm.projector_height, info.cols, info.rows)
+            if ref is None:
+                ref_pose, ref = sub, this
+            elif this != ref:
+                raise InputError(
+                    f"{path}: poses differ: {ref_pose} has a {ref[0]} x {ref[1]} projector "
+                    f"and {ref[2]} x {ref[3]} images, {sub} has {this[0]} x {this[1]} and "
+                    f"{this[2]} x {this[3]}")
     return man
 
 
@@ -159,9 +193,12 @@ def write_calibration_manifest(folder, man: CalibrationSetManifest) -> None:
            "target": {"type": "circle-grid", "rows": int(t.rows), "cols": int(t.cols),
                       "pitch_mm": float(t.pitch_mm), "diameter_mm": float(t.diameter_mm),
                       "circles": t.circles},
-           "camera": {"pixel_size_mm": [float(x) for x in man.camera_pixel_size]},
-           "projector": {"pixel_size_mm": [float(x) for x in man.projector_pixel_size]},
            "poses": list(man.poses), "reference_pose": man.reference_pose}
+    for dev, model in man.models.items():
+        entry: dict = {"model": model}
+        if dev in man.pixel_sizes:
+            entry["pixel_size_mm"] = [float(x) for x in man.pixel_sizes[dev]]
+        doc[dev] = entry
     if man.projector_side is not None:
         doc["projector_side"] = man.projector_side
     write_json_atomic(Path(folder) / "calibration.json", doc, force=True)

@@ -37,13 +37,23 @@ from telefringe.io.atomic import atomic_file
 from telefringe.io.errors import InputError
 
 __all__ = ["OpenCVImport", "read_opencv_rig", "opencv_rig_text", "write_opencv_rig",
-           "LENGTH_UNITS", "DISTORTION_NAMES"]
+           "LENGTH_UNITS", "DISTORTION_NAMES", "WORLD_FRAMES"]
 
 #: Millimetres per unit of the file's translations.
 LENGTH_UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 1e-3, "in": 25.4}
 #: OpenCV's distortion coefficients, in its order (``distCoeffs`` of 14).
 DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4",
                     "tx", "ty")
+#: World frames of an imported rig, from the first camera's frame (x along its columns, y
+#: along its rows, z along its view): ``X_world = F X_camera``.
+WORLD_FRAMES = {
+    "camera": (np.eye(3), "the first camera's frame: X_world = X_camera (x along its columns, "
+                          "y along its rows, z the depth along its view)"),
+    "toward-camera": (np.diag([1.0, -1.0, -1.0]),
+                      "the first camera's frame turned 180 degrees about its x axis: "
+                      "X_world = (X_c, -Y_c, -Z_c) (x along its columns, y up its image, z "
+                      "toward the camera: heights positive toward the camera)"),
+}
 _D_LENGTHS = (4, 5, 8, 12, 14)
 _ROTATION_TOL = 1e-6  # |R R^T - I| accepted (then made exactly orthonormal)
 # what each device is called in files, and which nodes hold it
@@ -60,8 +70,8 @@ class OpenCVImport:
 
     Attributes
     ----------
-    rig : Rig, pinhole devices in the first camera's frame (mm): ``camera`` (and
-        ``camera_2``) and the projector (or None).
+    rig : Rig, pinhole devices (mm): ``camera`` (and ``camera_2``) and the projector (or
+        None), in the world frame asked for (:data:`WORLD_FRAMES`).
     names : str, which naming the files follow, in words.
     sizes : dict device -> where its image size came from (``"S"``, ``"--camera-size"``,
         ...).
@@ -73,12 +83,18 @@ class OpenCVImport:
     names: str
     sizes: dict
     unused: tuple[str, ...]
+    world: str = "camera"
+
+    @property
+    def world_definition(self) -> str:
+        """The world frame, in words."""
+        return WORLD_FRAMES[self.world][1]
 
     def source(self, files) -> dict:
         """The ``source`` block of rig.json for this import of ``files``."""
         return {"imported_from": [str(f) for f in files], "format": "OpenCV FileStorage",
                 "names": self.names, "image_sizes_from": dict(self.sizes),
-                "world_frame": "the first camera's: X_world = X_camera",
+                "world_frame": self.world_definition,
                 "not_used": list(self.unused)}
 
 
@@ -192,10 +208,15 @@ class _Check:
     def rotation(self, key) -> np.ndarray:
         R = self.finite(key)
         if R.size == 3:
+            if np.max(np.abs(R)) > 1e3:
+                self.fail(key, f"is not a rotation vector (an angle of {np.max(np.abs(R)):.3g} "
+                               "rad)")
             return rotation_from_rotvec(R.reshape(3))
         if R.shape != (3, 3):
             self.fail(key, "must be a 3 x 3 rotation matrix or a rotation vector of 3, got "
                            f"a {' x '.join(map(str, R.shape))} matrix")
+        if np.max(np.abs(R)) > 1.0 + _ROTATION_TOL:
+            self.fail(key, f"is not a rotation: it holds {np.max(np.abs(R)):.3g}, beyond 1")
         err = float(np.max(np.abs(R @ R.T - np.eye(3))))
         if err > _ROTATION_TOL or np.linalg.det(R) <= 0:
             what = (f"R R^T differs from I by {err:.2g}" if err > _ROTATION_TOL else
@@ -208,7 +229,11 @@ class _Check:
         if T.size != 3 or (T.ndim == 2 and 1 not in T.shape):
             self.fail(key, f"must be a translation of 3 values, got a "
                            f"{' x '.join(map(str, T.shape))} matrix")
-        return T.reshape(3) * scale
+        with np.errstate(over="ignore"):
+            T = T.reshape(3) * scale
+        if not np.all(np.isfinite(T)):
+            self.fail(key, "is too large for a translation")
+        return T
 
     def size(self, key) -> tuple[int, int]:
         S = self.finite(key).reshape(-1)
@@ -236,7 +261,7 @@ def _parse_size(text, option) -> tuple[int, int] | None:
 
 
 def read_opencv_rig(files, *, camera_size=None, camera_2_size=None, projector_size=None,
-                    unit: str = "mm") -> OpenCVImport:
+                    unit: str = "mm", world: str = "camera") -> OpenCVImport:
     """Read a rig from OpenCV calibration files (see the module notes for the names).
 
     Parameters
@@ -248,6 +273,9 @@ def read_opencv_rig(files, *, camera_size=None, camera_2_size=None, projector_si
         must agree. The second camera defaults to the first camera's size.
     unit : the length unit of the files' translations (``T``, ``Tlp``), one of
         :data:`LENGTH_UNITS`; converted to mm.
+    world : the world frame, one of :data:`WORLD_FRAMES`: ``"camera"`` (the first
+        camera's; Z is depth) or ``"toward-camera"`` (the same turned about x: z toward
+        the camera, like the world frame of a telefringe calibration).
 
     Returns
     -------
@@ -266,6 +294,8 @@ def read_opencv_rig(files, *, camera_size=None, camera_2_size=None, projector_si
         raise InputError("no OpenCV file given")
     if unit not in LENGTH_UNITS:
         raise InputError(f"unit must be one of {', '.join(LENGTH_UNITS)}, got {unit!r}")
+    if world not in WORLD_FRAMES:
+        raise InputError(f"world must be one of {', '.join(WORLD_FRAMES)}, got {world!r}")
     scale = LENGTH_UNITS[unit]
     sizes_opt = {"camera": _parse_size(camera_size, "--camera-size"),
                  "camera_2": _parse_size(camera_2_size, "--camera-2-size"),
@@ -354,8 +384,13 @@ def read_opencv_rig(files, *, camera_size=None, camera_2_size=None, projector_si
         kinds.append("SLMaster camera + projector (M1 D1 M4 D4 Rlp Tlp: X_projector = "
                      "Rlp X_camera + Tlp)")
     unused = tuple(sorted(have - _USED))
+    F = WORLD_FRAMES[world][0]  # X_world = F X_camera, so X_dev = R F^T X_world + t
+    if world != "camera":
+        cams = {n: d.with_pose(d.R_dev_world @ F.T, d.t_dev) for n, d in cams.items()}
+        if proj is not None:
+            proj = proj.with_pose(proj.R_dev_world @ F.T, proj.t_dev)
     return OpenCVImport(Rig(cameras=cams, projector=proj), "; ".join(kinds) + f"; {unit}",
-                        sizes_from, unused)
+                        sizes_from, unused, world)
 
 
 # --------------------------------------------------------------------------- writing

@@ -9,7 +9,31 @@ from telefringe.io.jsonable import number_or_none as _f
 from telefringe.io.jsonable import to_jsonable
 
 __all__ = ["bga_summary", "cloud_summary", "plane_summary", "plate_summary", "sphere_summary",
-           "steps_summary", "paper_result_to_json"]
+           "steps_summary", "paper_result_to_json", "uncertainty_summary"]
+
+#: The unit of each quantity of a measurement's ``uncertainty`` (mm unless listed).
+_UNCERTAINTY_UNITS = {"tilt_deg": "deg"}
+
+
+def uncertainty_summary(unc) -> dict | None:
+    """A measurement's ``uncertainty`` (dict of
+    :class:`telefringe.metrology.uncertainty.Uncertainty`) as JSON: per quantity its
+    ``value``, ``u_noise``, ``u_calibration``, combined ``u``, expanded ``U`` (same shape
+    as the value; mm, or deg for ``tilt_deg``), ``k`` and ``unit``. None stays None."""
+    if unc is None:
+        return None
+    return {name: {"value": to_jsonable(q.value), "u_noise": to_jsonable(q.u_noise),
+                   "u_calibration": to_jsonable(q.u_calibration), "u": to_jsonable(q.u),
+                   "U": to_jsonable(q.U), "k": _f(q.k),
+                   "unit": _UNCERTAINTY_UNITS.get(name, "mm")}
+            for name, q in unc.items()}
+
+
+def _with_uncertainty(out: dict, m) -> dict:
+    unc = getattr(m, "uncertainty", None)
+    out["uncertainty"] = uncertainty_summary(unc)
+    out["uncertainty_includes_calibration"] = unc is not None
+    return out
 
 
 def cloud_summary(cloud) -> dict:
@@ -55,7 +79,7 @@ def plane_summary(p) -> dict:
 def plate_summary(m) -> dict:
     """A :class:`telefringe.metrology.PlateMeasurement` as in the paper's Table 3."""
     sp = m.spacing
-    return {
+    return _with_uncertainty({
         "z_mm": _f(m.z.distance), "sigma_z_mm": _f(m.z.sigma),
         "angle_to_reference_deg": _f(m.z.angle_deg),
         "plane": plane_summary(m.plane),
@@ -71,12 +95,12 @@ def plate_summary(m) -> dict:
         "markers": {"measured": int(np.count_nonzero(m.centres.valid)),
                     "centres_mm": to_jsonable(m.centres.xyz),
                     "sigma_mm": to_jsonable(m.centres.sigma_xyz)},
-    }
+    }, m)
 
 
-def sphere_summary(f, base=None, *, region: str | None = None) -> dict:
-    """A :class:`telefringe.metrology.SphereFit` (and its base plane, and which points
-    were fitted: ``SphereMeasurement.region``)."""
+def sphere_summary(f, base=None, *, region: str | None = None, uncertainty=None) -> dict:
+    """A :class:`telefringe.metrology.SphereFit` (and its base plane, which points were
+    fitted: ``SphereMeasurement.region``, and ``SphereMeasurement.uncertainty``)."""
     out = {"centre_mm": to_jsonable(f.centre), "radius_mm": _f(f.radius),
            "diameter_mm": _f(f.diameter), "sigma_centre_mm": to_jsonable(f.sigma_centre),
            "sigma_radius_mm": _f(f.sigma_radius), "rms_mm": _f(f.rms),
@@ -86,17 +110,19 @@ def sphere_summary(f, base=None, *, region: str | None = None) -> dict:
         out["base_plane"] = plane_summary(base)
     if region is not None:
         out["fitted_points"] = region
+    out["uncertainty"] = uncertainty_summary(uncertainty)
+    out["uncertainty_includes_calibration"] = uncertainty is not None
     return out
 
 
 def steps_summary(m) -> dict:
     """A :class:`telefringe.metrology.StepMeasurement` without the label image."""
-    return {"levels": int(len(m.offsets)), "normal": to_jsonable(m.normal),
+    return _with_uncertainty({"levels": int(len(m.offsets)), "normal": to_jsonable(m.normal),
             "heights_mm": to_jsonable(m.heights),
             "sigma_heights_mm": to_jsonable(m.sigma_heights),
             "step_heights_mm": to_jsonable(m.step_heights),
             "sigma_steps_mm": to_jsonable(m.sigma_steps), "rms_mm": to_jsonable(m.rms),
-            "n_points": to_jsonable(m.n_points)}
+            "n_points": to_jsonable(m.n_points)}, m)
 
 
 def paper_result_to_json(result) -> dict:
@@ -145,7 +171,7 @@ def bga_summary(m) -> dict:
     fin = np.concatenate([np.asarray(m.pitch_x)[np.isfinite(m.pitch_x)],
                           np.asarray(m.pitch_y)[np.isfinite(m.pitch_y)]])
     nom = m.nominal
-    return {
+    return _with_uncertainty({
         "nominal": {"rows": int(nom.rows), "cols": int(nom.cols), "pitch_mm": _f(nom.pitch_mm),
                     "ball_diameter_mm": _f(nom.ball_diameter_mm)},
         "balls_found": int(m.n_balls), "missing": [list(x) for x in m.missing],
@@ -176,4 +202,4 @@ def bga_summary(m) -> dict:
                   "sigma_height_noise_mm": to_jsonable(m.sigma_height_noise),
                   "diameter_mm": to_jsonable(m.diameter), "centre_mm": to_jsonable(m.centre),
                   "apex_mm": to_jsonable(m.apex)},
-    }
+    }, m)

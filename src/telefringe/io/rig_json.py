@@ -70,6 +70,7 @@ from pathlib import Path
 
 import numpy as np
 
+from telefringe.calibration import rig as _calibration_rig
 from telefringe.calibration.device import Outlier
 from telefringe.calibration.rig import RigCalibration
 from telefringe.devices.pinhole import PinholeDevice, PinholeIntrinsics
@@ -186,23 +187,44 @@ def _report_devices(calib) -> tuple[str, ...]:
     return tuple(out)
 
 
-def _per_device(calib, kind: str, name: str):
-    """A per-device report entry of ``calib``: ``rms_<name>``, ``sigma_<name>``,
-    ``residuals_<name>``, ``<name>_observations`` (None where the calibration has none)."""
-    attr = {"rms": f"rms_{name}", "sigma": f"sigma_{name}",
-            "residuals": f"residuals_{name}", "observations": f"{name}_observations"}[kind]
-    return getattr(calib, attr, None)
+_LEGACY = ("camera", "projector")  # the devices of RigCalibration's own fields, in order
 
 
-def _nan_array_like(calib) -> np.ndarray:
+def _device_report(calib, name: str) -> dict:
+    """One device's report: rms, sigma (px), observations, residuals (poses, points, 2),
+    rms_per_pose (poses,), principal_point_weak. From ``calib.devices[name]`` (a
+    DeviceReport) where the calibration has one, else from RigCalibration's camera /
+    projector fields; NaN where it has none."""
     n_p, n_k = len(calib.pose_names), np.asarray(calib.points_target).shape[0]
-    return np.full((n_p, n_k, 2), np.nan)
+    rep = (getattr(calib, "devices", None) or {}).get(name)
+    if rep is not None:
+        return {"rms": rep.rms, "sigma": rep.sigma, "observations": rep.observations,
+                "residuals": rep.residuals, "rms_per_pose": rep.rms_per_pose,
+                "principal_point_weak": rep.principal_point_weak}
+    if name in _LEGACY:
+        j = _LEGACY.index(name)
+        per_pose = np.asarray(calib.rms_per_pose, dtype=float).reshape(n_p, -1)
+        weak = tuple(calib.principal_point_weak)
+        return {"rms": getattr(calib, f"rms_{name}"), "sigma": getattr(calib, f"sigma_{name}"),
+                "observations": getattr(calib, f"{name}_observations"),
+                "residuals": getattr(calib, f"residuals_{name}"),
+                "rms_per_pose": per_pose[:, j] if j < per_pose.shape[1] else np.full(n_p,
+                                                                                     np.nan),
+                "principal_point_weak": bool(weak[j]) if j < len(weak) else False}
+    nan = np.full((n_p, n_k, 2), np.nan)
+    return {"rms": np.nan, "sigma": np.nan, "observations": nan, "residuals": nan,
+            "rms_per_pose": np.full(n_p, np.nan), "principal_point_weak": False}
+
+
+def _has_pinhole(rig: Rig) -> bool:
+    return any(_device_of(rig, d).model == "pinhole" for d in rig_device_names(rig))
 
 
 def rig_to_json(calib: RigCalibration) -> dict:
-    """The ``rig.json`` document (a dict, version 2) of a calibration of any rig."""
+    """The ``rig.json`` document (a dict, version 2) of a calibration of any rig. The
+    ``mirror`` of a rig with a pinhole device is :data:`MIRROR_PINHOLE`."""
     devs = _report_devices(calib)
-    per_pose = np.asarray(calib.rms_per_pose, dtype=float).reshape(len(calib.pose_names), -1)
+    reps = {d: _device_report(calib, d) for d in devs}
     poses = []
     for i, name in enumerate(calib.pose_names):
         used = bool(calib.used[i])
@@ -211,27 +233,19 @@ def rig_to_json(calib: RigCalibration) -> dict:
             "rotation_vector": ([float(v) for v in rotvec_from_rotation(calib.R_world_target[i])]
                                 if used else None),
             "t_mm": _arr(calib.t_world_target[i]) if used else None,
-            "rms_px": {d: (number_or_none(per_pose[i, j]) if j < per_pose.shape[1] else None)
-                       for j, d in enumerate(devs)}})
+            "rms_px": {d: number_or_none(reps[d]["rms_per_pose"][i]) for d in devs}})
 
     def entries(kind):
-        out = {}
-        for d in devs:
-            v = _per_device(calib, kind, d)
-            if kind in ("rms", "sigma"):
-                out[d] = None if v is None else number_or_none(v)
-            else:
-                out[d] = _arr(_nan_array_like(calib) if v is None else v)
-        return out
+        if kind in ("rms", "sigma"):
+            return {d: number_or_none(reps[d][kind]) for d in devs}
+        return {d: _arr(reps[d][kind]) for d in devs}
 
-    weak = tuple(calib.principal_point_weak)
     report = {
         "rms_px": entries("rms"),
         "sigma_px": entries("sigma"),
         "principal_point": calib.principal_point,
-        "principal_point_weak": {d: bool(weak[j]) if j < len(weak) else False
-                                 for j, d in enumerate(devs)},
-        "mirror": calib.mirror,
+        "principal_point_weak": {d: bool(reps[d]["principal_point_weak"]) for d in devs},
+        "mirror": MIRROR_PINHOLE if _has_pinhole(calib.rig) else calib.mirror,
         "parameters": {"names": list(calib.parameter_names), "values": _arr(calib.parameters),
                        "std": _arr(calib.std), "covariance": _arr(calib.covariance)},
         "grid_shape": list(calib.grid_shape) if calib.grid_shape is not None else None,
@@ -329,8 +343,7 @@ def bare_calibration(rig: Rig, *, reference_pose: str = "", phase_errors: dict |
     names = rig_parameter_names_of(rig, devs)
     n = len(names)
     if mirror is None:
-        mirror = (MIRROR_PINHOLE if any(_device_of(rig, d).model == "pinhole" for d in devs)
-                  else "unknown")
+        mirror = MIRROR_PINHOLE if _has_pinhole(rig) else "unknown"
     empty = np.zeros((0, 0, 2))
     kw = dict(
         rig=rig, pose_names=(), reference_pose=reference_pose, used=np.zeros(0, dtype=bool),
@@ -341,18 +354,10 @@ def bare_calibration(rig: Rig, *, reference_pose: str = "", phase_errors: dict |
         sigma_camera=float("nan"), sigma_projector=float("nan"),
         residuals_camera=empty, residuals_projector=empty,
         rms_camera=float("nan"), rms_projector=float("nan"),
-        rms_per_pose=np.zeros((0, len(devs))), outliers=(),
+        rms_per_pose=np.zeros((0, 2)), outliers=(),
         camera_observations=empty, projector_observations=empty,
-        principal_point="unknown", principal_point_weak=tuple(False for _ in devs),
+        principal_point="unknown", principal_point_weak=(False, False),
         mirror=mirror, warnings=tuple(warnings), phase_errors=dict(phase_errors or {}))
-    fields = {f.name for f in dataclasses.fields(RigCalibration)}
-    for d in devs:
-        if d in ("camera", "projector"):
-            continue
-        for key, val in ((f"rms_{d}", float("nan")), (f"sigma_{d}", float("nan")),
-                         (f"residuals_{d}", empty), (f"{d}_observations", empty)):
-            if key in fields:
-                kw[key] = val
     return RigCalibration(**kw)
 
 
@@ -682,6 +687,9 @@ def rig_from_json(doc, *, where: str = "rig.json") -> RigCalibration:
     def pick(seq, dev, default):
         return seq[by[dev]] if dev in by else default
 
+    def pose_rms(dev):
+        return rms_pose[:, by[dev]] if dev in by else np.full(n_p, np.nan)
+
     kw = dict(
         rig=rig, pose_names=tuple(names_p), reference_pose=ref, used=used,
         R_world_target=R_all, t_world_target=T_all, points_target=pts,
@@ -691,22 +699,22 @@ def rig_from_json(doc, *, where: str = "rig.json") -> RigCalibration:
         residuals_camera=arrays.get(("residuals", "camera"), missing),
         residuals_projector=arrays.get(("residuals", "projector"), missing),
         rms_camera=pick(rms, "camera", nan), rms_projector=pick(rms, "projector", nan),
-        rms_per_pose=rms_pose, outliers=tuple(outs),
+        rms_per_pose=np.column_stack([pose_rms("camera"), pose_rms("projector")]),
+        outliers=tuple(outs),
         camera_observations=arrays.get(("observations", "camera"), missing),
         projector_observations=arrays.get(("observations", "projector"), missing),
         principal_point=str(rep.get("principal_point", "estimate")),
-        principal_point_weak=tuple(weak), mirror=str(rep.get("mirror", "unknown")),
-        warnings=tuple(warns), phase_errors=phase_errors)
-    fields = {f.name for f in dataclasses.fields(RigCalibration)}
-    for dev in devs:  # further devices (camera_2), where RigCalibration has their fields
-        if dev in ("camera", "projector"):
-            continue
-        for key, val in ((f"rms_{dev}", pick(rms, dev, nan)),
-                         (f"sigma_{dev}", pick(sig, dev, nan)),
-                         (f"residuals_{dev}", arrays["residuals", dev]),
-                         (f"{dev}_observations", arrays["observations", dev])):
-            if key in fields:
-                kw[key] = val
+        principal_point_weak=(pick(weak, "camera", False), pick(weak, "projector", False)),
+        mirror=str(rep.get("mirror", "unknown")), warnings=tuple(warns),
+        phase_errors=phase_errors)
+    # every calibrated device's report (camera_2 too), where RigCalibration holds them
+    report_cls = getattr(_calibration_rig, "DeviceReport", None)
+    if report_cls is not None and "devices" in {f.name for f in
+                                                dataclasses.fields(RigCalibration)}:
+        kw["devices"] = {d: report_cls(
+            model=_device_of(rig, d).model, sigma=sig[k], observations=arrays["observations", d],
+            residuals=arrays["residuals", d], rms=rms[k], rms_per_pose=rms_pose[:, k],
+            principal_point_weak=weak[k]) for k, d in enumerate(devs)}
     return RigCalibration(**kw)
 
 

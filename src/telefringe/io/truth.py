@@ -44,17 +44,18 @@ def _device_state(dev) -> dict:
     """A device's true state as the simulator holds it: every field of its intrinsics (the
     dataclass as it is, whatever the model) and its pose. The readable, loadable form of a
     device is rig.json's (:mod:`telefringe.io.rig_json`)."""
-    return {"intrinsics": to_jsonable(dev.intrinsics),
+    return {"model": dev.model, "intrinsics": to_jsonable(dev.intrinsics),
             "R_dev_world": dev.R_dev_world, "rotvec": dev.rotvec, "t_dev_mm": dev.t_dev,
-            "axis_world": dev.axis_world}
+            "axis_world": dev.R_dev_world[2]}
 
 
 def true_rig_to_json(vrig) -> dict:
     """The ``rig_true.json`` document of a :class:`~telefringe.simulate.presets.VirtualRig`:
     its true devices, photometry and target."""
+    cams = {name: _device_state(dev) for name, dev in vrig.rig.cameras.items()}
     return to_jsonable({
         "format": TRUTH_FORMAT + "-rig", "version": 1, "name": vrig.name,
-        "camera": _device_state(vrig.camera), "projector": _device_state(vrig.projector),
+        **cams, "projector": _device_state(vrig.projector),
         "photometry": vrig.photometry, "target": vrig.target,
         "world_frame": "calibration target at its reference pose (x along columns, y along "
                        "rows, z toward the camera)",

@@ -218,12 +218,16 @@ class PlateMeasurement:
     z : PlaneDistance, the plane's distance from the reference plane (Z measured).
     centres : MarkerCentres, (rows * cols) in target order.
     spacing : GridSpacing.
+    uncertainty : dict of str -> Uncertainty, or None: ``"z"``, ``"tilt_deg"``,
+        ``"spacing_x"``, ``"spacing_y"`` with the noise and calibration parts (set by
+        :func:`telefringe.metrology.uncertainty.plate_uncertainty`; None until then).
     """
 
     plane: PlaneFit
     z: PlaneDistance
     centres: MarkerCentres
     spacing: GridSpacing
+    uncertainty: dict | None = None
 
 
 def measure_plate(cloud: PointCloud, centres_px, *, rows: int, cols: int, pitch_mm: float,

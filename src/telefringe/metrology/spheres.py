@@ -192,11 +192,18 @@ class SphereMeasurement:
         the points, and then every point was fitted as sphere (``region`` says so).
     region : str, which points were fitted: ``"above the base plane"`` or
         ``"all points (no base plane found)"``.
+    fitted : (rows, cols) bool or None, the cloud's pixels whose points the sphere fit
+        kept (its inliers).
+    uncertainty : dict of str -> Uncertainty, or None: ``"radius"``, ``"centre"`` with
+        the noise and calibration parts (set by
+        :func:`telefringe.metrology.uncertainty.sphere_uncertainty`; None until then).
     """
 
     sphere: SphereFit
     base: PlaneFit | None
     region: str
+    fitted: np.ndarray | None = None
+    uncertainty: dict | None = None
 
 
 def measure_sphere(cloud: PointCloud, *, min_height: float | None = None,
@@ -236,9 +243,12 @@ def measure_sphere(cloud: PointCloud, *, min_height: float | None = None,
         region = labels == (1 + int(np.argmax(sizes)))
         if edge_px > 0:
             region = ndimage.binary_erosion(region, iterations=int(edge_px))
-        pts = cloud.xyz[region & mask]
+        sel = region & mask
         where = "above the base plane"
     else:
-        pts = cloud.points()
+        sel = mask
         where = "all points (no base plane found)"
-    return SphereMeasurement(fit_sphere(pts, robust=True), base, where)
+    fit = fit_sphere(cloud.xyz[sel], robust=True)
+    fitted = np.zeros(mask.shape, dtype=bool)
+    fitted[sel] = fit.inliers
+    return SphereMeasurement(fit, base, where, fitted)

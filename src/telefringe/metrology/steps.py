@@ -25,6 +25,9 @@ class StepMeasurement:
     rms : (k,) mm, RMS residual of each level.   n_points : (k,) int.
     centroids : (k, 3) mm.
     labels : (rows, cols) int, level of each pixel (-1: unused).
+    uncertainty : dict of str -> Uncertainty, or None: ``"heights"``, ``"step_heights"``
+        with the noise and calibration parts (set by
+        :func:`telefringe.metrology.uncertainty.steps_uncertainty`; None until then).
     """
 
     normal: np.ndarray
@@ -37,6 +40,7 @@ class StepMeasurement:
     n_points: np.ndarray
     centroids: np.ndarray
     labels: np.ndarray
+    uncertainty: dict | None = None
 
     def __post_init__(self):
         _freeze(self, "normal", "offsets", "heights", "sigma_heights", "step_heights",

@@ -12,7 +12,7 @@ from telefringe.devices import _telecentric_kernels as _tk
 __all__ = ["heightfield_eval", "heightfield_intersect", "camera_rays",
            "shade", "interp_samples", "plate_intersect", "boxes_intersect",
            "sphere_intersect", "bga_intersect", "plane_intersect", "hit_points",
-           "accumulate_many", "sensor_counts"]
+           "accumulate_many", "sensor_counts", "shadow_origins"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -53,32 +53,36 @@ def heightfield_eval(z, px, x0, y0, xs, ys):
 def heightfield_intersect(z, px, x0, y0, o, d):
     """First crossing from above of rays ``o + t d`` with a bilinear height field.
 
-    Marches in steps of px/4 in x-y (at most 1/8 of the height range in z), then bisects
-    the first sign change of ``z_ray - h`` to 1e-9 mm. Returns t (N,) (inf: no hit) and
-    the upward unit normal (N, 3).
+    ``o`` (N, 3) origins, ``d`` (N, 3) unit directions (one per ray). Marches in steps
+    of px/4 in x-y (at most 1/8 of the height range in z), then bisects the first sign
+    change of ``z_ray - h`` to 1e-9 mm. Returns t (N,) (inf: no hit) and the upward unit
+    normal (N, 3).
     """
     n = o.shape[0]
     t_out = np.full(n, np.inf)
     nrm = np.zeros((n, 3))
     zmin = z.min()
     zmax = z.max()
-    dxy = np.sqrt(d[0] * d[0] + d[1] * d[1])
     span = max(zmax - zmin, 1e-9)
-    step = np.inf
-    if dxy > 0:
-        step = 0.25 * px / dxy
-    if abs(d[2]) > 0:
-        step = min(step, 0.125 * span / abs(d[2]))
-        step = max(step, 1e-9)
-    if not np.isfinite(step):
-        return t_out, nrm
     for k in range(n):
         if not (o[k, 0] == o[k, 0] and o[k, 1] == o[k, 1] and o[k, 2] == o[k, 2]):
             continue
+        d0 = d[k, 0]
+        d1 = d[k, 1]
+        d2 = d[k, 2]
+        dxy = np.sqrt(d0 * d0 + d1 * d1)
+        step = np.inf
+        if dxy > 0:
+            step = 0.25 * px / dxy
+        if abs(d2) > 0:
+            step = min(step, 0.125 * span / abs(d2))
+            step = max(step, 1e-9)
+        if not np.isfinite(step):
+            continue
         # parameter range where the ray is within [zmin, zmax]
-        if d[2] != 0.0:
-            ta = (zmax - o[k, 2]) / d[2]
-            tb = (zmin - o[k, 2]) / d[2]
+        if d2 != 0.0:
+            ta = (zmax - o[k, 2]) / d2
+            tb = (zmin - o[k, 2]) / d2
             if ta > tb:
                 ta, tb = tb, ta
         else:
@@ -95,10 +99,10 @@ def heightfield_intersect(z, px, x0, y0, o, d):
         t = ta
         found = False
         while t <= tb + step:
-            x = o[k, 0] + t * d[0]
-            y = o[k, 1] + t * d[1]
+            x = o[k, 0] + t * d0
+            y = o[k, 1] + t * d1
             h, _, _ = _hf_at(z, px, x0, y0, x, y)
-            f = o[k, 2] + t * d[2] - h
+            f = o[k, 2] + t * d2 - h
             if prev_f > 0.0 and f <= 0.0:
                 lo = prev_t
                 hi = t
@@ -106,8 +110,8 @@ def heightfield_intersect(z, px, x0, y0, o, d):
                     if hi - lo <= 1e-9:
                         break
                     mid = 0.5 * (lo + hi)
-                    hm, _, _ = _hf_at(z, px, x0, y0, o[k, 0] + mid * d[0], o[k, 1] + mid * d[1])
-                    fm = o[k, 2] + mid * d[2] - hm
+                    hm, _, _ = _hf_at(z, px, x0, y0, o[k, 0] + mid * d0, o[k, 1] + mid * d1)
+                    fm = o[k, 2] + mid * d2 - hm
                     if fm > 0.0:
                         lo = mid
                     elif fm <= 0.0:
@@ -115,7 +119,7 @@ def heightfield_intersect(z, px, x0, y0, o, d):
                     else:  # left the grid in between: keep the inside end
                         lo = mid
                 th = 0.5 * (lo + hi)
-                h, gx, gy = _hf_at(z, px, x0, y0, o[k, 0] + th * d[0], o[k, 1] + th * d[1])
+                h, gx, gy = _hf_at(z, px, x0, y0, o[k, 0] + th * d0, o[k, 1] + th * d1)
                 if h == h:
                     t_out[k] = th
                     s = np.sqrt(gx * gx + gy * gy + 1.0)
@@ -166,7 +170,10 @@ def _phi(x):
 @numba.njit(cache=True, nogil=True)
 def shade(t, nrm, alb, spec, unshadowed, up, vp, to_proj, h_vec, spec_sigma, dn, ambient,
           W, H, sigma_p):
-    """Per-sample weights of the pattern (see render._trace). Returns wu, wv, amb, lit."""
+    """Per-sample weights of the pattern (see render._trace). Returns wu, wv, amb, lit.
+
+    ``to_proj`` (N, 3) unit vectors toward the projector, ``h_vec`` (N, 3) unit half
+    vectors (toward the projector + toward the camera), per sample."""
     n = t.shape[0]
     wu = np.zeros(n)
     wv = np.zeros(n)
@@ -176,12 +183,13 @@ def shade(t, nrm, alb, spec, unshadowed, up, vp, to_proj, h_vec, spec_sigma, dn,
         if not np.isfinite(t[i]):
             continue
         amb[i] = dn * ambient * alb[i]
-        cos_i = nrm[i, 0] * to_proj[0] + nrm[i, 1] * to_proj[1] + nrm[i, 2] * to_proj[2]
+        cos_i = (nrm[i, 0] * to_proj[i, 0] + nrm[i, 1] * to_proj[i, 1]
+                 + nrm[i, 2] * to_proj[i, 2])
         if cos_i <= 0.0 or not unshadowed[i]:
             continue
         w = dn * alb[i] * cos_i
         if spec[i] != 0.0:
-            ch = nrm[i, 0] * h_vec[0] + nrm[i, 1] * h_vec[1] + nrm[i, 2] * h_vec[2]
+            ch = nrm[i, 0] * h_vec[i, 0] + nrm[i, 1] * h_vec[i, 1] + nrm[i, 2] * h_vec[i, 2]
             ang = math.acos(min(1.0, max(-1.0, ch)))
             w += dn * spec[i] * math.exp(-0.5 * (ang / spec_sigma) ** 2)
         if sigma_p > 0.0:
@@ -248,17 +256,17 @@ def plate_intersect(o, d, R, tw, rows, cols, pitch, radius, margin, albedo, mark
     """Circle plate: the plane Z = 0 of the target frame (R world<-target, origin tw)."""
     n = o.shape[0]
     t_out, nrm, alb, spec, part = _new_hits(n)
-    dlz = R[0, 2] * d[0] + R[1, 2] * d[1] + R[2, 2] * d[2]
-    dlx = R[0, 0] * d[0] + R[1, 0] * d[1] + R[2, 0] * d[2]
-    dly = R[0, 1] * d[0] + R[1, 1] * d[1] + R[2, 1] * d[2]
-    if dlz == 0.0:
-        return t_out, nrm, alb, spec, part
     x1 = (cols - 1) * pitch + margin
     y1 = (rows - 1) * pitch + margin
     r2max = radius * radius
     for i in numba.prange(n):
         if not (o[i, 0] == o[i, 0]):
             continue
+        dlz = R[0, 2] * d[i, 0] + R[1, 2] * d[i, 1] + R[2, 2] * d[i, 2]
+        if dlz == 0.0:
+            continue
+        dlx = R[0, 0] * d[i, 0] + R[1, 0] * d[i, 1] + R[2, 0] * d[i, 2]
+        dly = R[0, 1] * d[i, 0] + R[1, 1] * d[i, 1] + R[2, 1] * d[i, 2]
         px = o[i, 0] - tw[0]
         py = o[i, 1] - tw[1]
         pz = o[i, 2] - tw[2]
@@ -276,7 +284,7 @@ def plate_intersect(o, d, R, tw, rows, cols, pitch, radius, margin, albedo, mark
         k = min(max(np.round(y / pitch), 0.0), rows - 1.0)
         r2 = (x - j * pitch) ** 2 + (y - k * pitch) ** 2
         t_out[i] = t
-        _set_normal(nrm, i, R[0, 2], R[1, 2], R[2, 2], d)
+        _set_normal(nrm, i, R[0, 2], R[1, 2], R[2, 2], d[i])
         if r2 <= r2max:
             alb[i] = marker_albedo
             part[i] = 1
@@ -291,13 +299,13 @@ def boxes_intersect(o, d, R, tw, blocks, base, albedo, base_albedo):
     """Step gauge: base rectangle at Z = 0 plus axis-aligned blocks, in the scene frame."""
     n = o.shape[0]
     t_out, nrm, alb, spec, part = _new_hits(n)
-    dl = np.empty(3)
-    for k in range(3):
-        dl[k] = R[0, k] * d[0] + R[1, k] * d[1] + R[2, k] * d[2]
     nb = blocks.shape[0]
     for i in numba.prange(n):
         if not (o[i, 0] == o[i, 0]):
             continue
+        dl = np.empty(3)
+        for k in range(3):
+            dl[k] = R[0, k] * d[i, 0] + R[1, k] * d[i, 1] + R[2, k] * d[i, 2]
         ol = np.empty(3)
         for k in range(3):
             ol[k] = (R[0, k] * (o[i, 0] - tw[0]) + R[1, k] * (o[i, 1] - tw[1])
@@ -349,7 +357,7 @@ def boxes_intersect(o, d, R, tw, blocks, base, albedo, base_albedo):
             wx = R[0, 0] * bn[0] + R[0, 1] * bn[1] + R[0, 2] * bn[2]
             wy = R[1, 0] * bn[0] + R[1, 1] * bn[1] + R[1, 2] * bn[2]
             wz = R[2, 0] * bn[0] + R[2, 1] * bn[1] + R[2, 2] * bn[2]
-            _set_normal(nrm, i, wx, wy, wz, d)
+            _set_normal(nrm, i, wx, wy, wz, d[i])
             alb[i] = base_albedo if bp == 0 else albedo
             part[i] = bp
     return t_out, nrm, alb, spec, part
@@ -380,30 +388,31 @@ def sphere_intersect(o, d, c, r, plane_z, half, albedo, plane_albedo):
         if not (o[i, 0] == o[i, 0]):
             continue
         best = np.inf
-        if d[2] != 0.0:
-            t = (plane_z - o[i, 2]) / d[2]
-            x = o[i, 0] + t * d[0]
-            y = o[i, 1] + t * d[1]
+        di = d[i]
+        if di[2] != 0.0:
+            t = (plane_z - o[i, 2]) / di[2]
+            x = o[i, 0] + t * di[0]
+            y = o[i, 1] + t * di[1]
             if t > 0.0 and abs(x - c[0]) <= half and abs(y - c[1]) <= half:
                 best = t
                 t_out[i] = t
-                _set_normal(nrm, i, 0.0, 0.0, 1.0, d)
+                _set_normal(nrm, i, 0.0, 0.0, 1.0, di)
                 alb[i] = plane_albedo
                 part[i] = 0
-        ts = _sphere_t(o[i, 0], o[i, 1], o[i, 2], d, c[0], c[1], c[2], r)
+        ts = _sphere_t(o[i, 0], o[i, 1], o[i, 2], di, c[0], c[1], c[2], r)
         if ts > 0.0 and ts < best:
-            pz = o[i, 2] + ts * d[2]
+            pz = o[i, 2] + ts * di[2]
             if pz >= plane_z:
                 t_out[i] = ts
-                _set_normal(nrm, i, (o[i, 0] + ts * d[0] - c[0]) / r,
-                            (o[i, 1] + ts * d[1] - c[1]) / r, (pz - c[2]) / r, d)
+                _set_normal(nrm, i, (o[i, 0] + ts * di[0] - c[0]) / r,
+                            (o[i, 1] + ts * di[1] - c[1]) / r, (pz - c[2]) / r, di)
                 alb[i] = albedo
                 part[i] = 1
     return t_out, nrm, alb, spec, part
 
 
 @numba.njit(cache=True, nogil=True)
-def bga_intersect(o, d, origin, pitch, centre_z, present, r, chip, reach, hmid,
+def bga_intersect(o, dirs, origin, pitch, centre_z, present, r, chip, reach, hmid,
                   substrate_albedo, board_albedo, ball_albedo, ball_specular):
     """BGA: substrate Z = 0 (chip rectangle ``chip`` = (x0, x1, y0, y1), board beyond)
     and spherical caps (centre heights ``centre_z`` (rows, cols), radius r, hidden
@@ -416,6 +425,7 @@ def bga_intersect(o, d, origin, pitch, centre_z, present, r, chip, reach, hmid,
         if not (o[i, 0] == o[i, 0] and o[i, 1] == o[i, 1] and o[i, 2] == o[i, 2]):
             continue
         best = np.inf
+        d = dirs[i]
         if d[2] != 0.0:
             t = -o[i, 2] / d[2]
             if t > 0.0:
@@ -466,17 +476,17 @@ def plane_intersect(o, d, normal, point, albedo):
     """An infinite plane through ``point`` with unit ``normal``."""
     n = o.shape[0]
     t_out, nrm, alb, spec, part = _new_hits(n)
-    den = normal[0] * d[0] + normal[1] * d[1] + normal[2] * d[2]
-    if den == 0.0:
-        return t_out, nrm, alb, spec, part
     for i in numba.prange(n):
         if not (o[i, 0] == o[i, 0]):
+            continue
+        den = normal[0] * d[i, 0] + normal[1] * d[i, 1] + normal[2] * d[i, 2]
+        if den == 0.0:
             continue
         t = ((point[0] - o[i, 0]) * normal[0] + (point[1] - o[i, 1]) * normal[1]
              + (point[2] - o[i, 2]) * normal[2]) / den
         if t > 0.0:
             t_out[i] = t
-            _set_normal(nrm, i, normal[0], normal[1], normal[2], d)
+            _set_normal(nrm, i, normal[0], normal[1], normal[2], d[i])
             alb[i] = albedo
             part[i] = 0
     return t_out, nrm, alb, spec, part
@@ -539,18 +549,29 @@ def accumulate_many(coord, weight, per_pixel, profiles, x_first, inv_step, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def hit_points(o, d, t, nrm, to_proj, start):
-    """Hit points P (N, 3) (NaN where no hit) and the origins of the shadow rays toward
-    the projector (``P + start * to_proj``; NaN where no hit or facing away)."""
+def hit_points(o, d, t):
+    """Hit points P (N, 3) of rays ``o`` (N, 3) + t (N,) ``d`` (N, 3); NaN where no hit."""
     n = o.shape[0]
     P = np.full((n, 3), np.nan)
-    so = np.full((n, 3), np.nan)
     for i in numba.prange(n):
         if not np.isfinite(t[i]):
             continue
         for k in range(3):
-            P[i, k] = o[i, k] + t[i] * d[k]
-        if nrm[i, 0] * to_proj[0] + nrm[i, 1] * to_proj[1] + nrm[i, 2] * to_proj[2] > 0.0:
+            P[i, k] = o[i, k] + t[i] * d[i, k]
+    return P
+
+
+@numba.njit(cache=True, nogil=True)
+def shadow_origins(P, nrm, to_proj, start):
+    """Origins of the shadow rays toward the projector, ``P + start * to_proj`` (N, 3)
+    (``to_proj`` (N, 3) unit, ``start`` (N,) mm); NaN where no hit or facing away."""
+    n = P.shape[0]
+    so = np.full((n, 3), np.nan)
+    for i in numba.prange(n):
+        if not (P[i, 0] == P[i, 0]):
+            continue
+        if (nrm[i, 0] * to_proj[i, 0] + nrm[i, 1] * to_proj[i, 1]
+                + nrm[i, 2] * to_proj[i, 2]) > 0.0:
             for k in range(3):
-                so[i, k] = P[i, k] + start * to_proj[k]
-    return P, so
+                so[i, k] = P[i, k] + start[i] * to_proj[i, k]
+    return so

@@ -20,7 +20,7 @@ from telefringe.calibration.manifest import CalibrationSetManifest
 from telefringe.fringes.scan import Scan
 from telefringe.geometry.so3 import rotation_from_rotvec
 from telefringe.simulate.presets import VirtualRig
-from telefringe.simulate.render import Truth, default_groups, render_scan
+from telefringe.simulate.render import Truth, default_groups, image_radius_px, render_scan
 from telefringe.simulate.scenes import CirclePlate, plate_from_target
 
 __all__ = ["CalibrationPose", "simulate_calibration_poses", "mirror_pose",
@@ -73,25 +73,27 @@ def _fits(vrig: VirtualRig, R, t, *, max_depth_mm: float, margin_px: float,
     pts = plate_from_target(vrig.target, R, t).circle_centres_world()
     if np.max(np.abs(pts[:, 2])) > max_depth_mm:
         return False
-    cam, proj = vrig.camera, vrig.projector
+    proj = vrig.projector
     tgt = vrig.target
-    r_cam = 0.5 * tgt.diameter_mm * cam.intrinsics.m / cam.intrinsics.du + margin_px
-    u, v = cam.project(pts)
-    inside = ((u >= r_cam) & (u <= cam.intrinsics.width - 1 - r_cam)
-              & (v >= r_cam) & (v <= cam.intrinsics.height - 1 - r_cam))
-    r_proj = 0.5 * tgt.diameter_mm * proj.intrinsics.m / proj.intrinsics.du + 2
+    inside = np.ones(len(pts), dtype=bool)
+    for cam in vrig.rig.cameras.values():
+        r_cam = image_radius_px(cam, pts, 0.5 * tgt.diameter_mm) + margin_px
+        u, v = cam.project(pts)
+        inside &= ((u >= r_cam) & (u <= cam.intrinsics.width - 1 - r_cam)
+                   & (v >= r_cam) & (v <= cam.intrinsics.height - 1 - r_cam))
+    r_proj = image_radius_px(proj, pts, 0.5 * tgt.diameter_mm) + 2
     up, vp = proj.project(pts)
     lit = ((up >= r_proj) & (up <= proj.intrinsics.width - 1 - r_proj)
            & (vp >= r_proj) & (vp <= proj.intrinsics.height - 1 - r_proj))
-    if not np.all(lit):
-        return False
-    return bool(np.all(inside)) if need_all_visible else True
+    if need_all_visible:
+        return bool(np.all(lit) and np.all(inside))
+    return bool(np.mean(lit & inside) >= 0.3)
 
 
 def simulate_calibration_poses(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0,
-                               max_tilt_deg: float = 15.0, max_spin_deg: float = 10.0,
+                               max_tilt_deg: float | None = None, max_spin_deg: float = 10.0,
                                max_shift_mm: float = 2.0, max_depth_mm: float | None = None,
-                               mirror_pair: bool = True, half_hidden: bool = True
+                               mirror_pair: bool | None = None, half_hidden: bool = True
                                ) -> tuple[CalibrationPose, ...]:
     """Plate poses for a calibration set (see the module docstring).
 
@@ -102,16 +104,23 @@ def simulate_calibration_poses(vrig: VirtualRig, *, n_poses: int = 12, seed: int
         Number of poses including the reference (>= 3 with a mirror pair; >= 4 with the
         half-hidden pose too).
     seed : int
-    max_tilt_deg, max_spin_deg : float, deg.  max_shift_mm : float, mm.
+    max_tilt_deg : float, deg (default: the rig's ``calibration_tilt_deg``).
+    max_spin_deg : float, deg.  max_shift_mm : float, mm.
     max_depth_mm : float, optional
         Largest |Z| of any circle centre (default: half the rig's depth of field + 0.5).
-    mirror_pair, half_hidden : bool
+    mirror_pair : bool, default: whether the camera is telecentric (only a telecentric
+        camera sees both tilts of a mirror pair identically).
+    half_hidden : bool
 
     Returns
     -------
     tuple of CalibrationPose, named ``pose_00`` ... in order; ``pose_00`` is the
     reference (identity).
     """
+    if max_tilt_deg is None:
+        max_tilt_deg = float(vrig.calibration_tilt_deg)
+    if mirror_pair is None:
+        mirror_pair = vrig.camera.model == "telecentric"
     need = 1 + (2 if mirror_pair else 0) + (1 if half_hidden else 0)
     if n_poses < max(need, 2):
         raise ValueError(f"n_poses must be at least {max(need, 2)} with these options, "
@@ -174,52 +183,79 @@ def simulate_calibration_poses(vrig: VirtualRig, *, n_poses: int = 12, seed: int
                  for i, p in enumerate(poses))
 
 
-def projector_side(rig) -> str:
-    """Where the projector of ``rig`` (a Rig or VirtualRig) is, seen in the camera image:
-    "left", "right", "top" or "bottom" (what ``projector_side`` of calibration.json says;
-    shadows fall away from that side).
+def projector_side(rig, camera: str | None = None) -> str:
+    """Where the projector of ``rig`` (a Rig or VirtualRig) is, seen in the image of
+    ``camera`` (default: the first): "left", "right", "top" or "bottom" (what
+    ``projector_side`` of calibration.json says; shadows fall away from that side).
 
-    The projector's viewing axis, expressed in the camera's frame, points away from the
-    projector; its component across the camera image is largest along one image axis.
+    The direction from the scene toward the projector (against a telecentric
+    projector's axis; toward a pinhole projector's centre from the point its axis meets
+    in front of the camera), expressed in the camera's frame, is largest along one image
+    axis.
     """
     rig = getattr(rig, "rig", rig)
-    a = (rig.projector.R_dev_world @ rig.camera.R_dev_world.T)[2, :2]
-    sides = {"left": (-1.0, 0.0), "right": (1.0, 0.0), "top": (0.0, -1.0),
-             "bottom": (0.0, 1.0)}
-    return min(sides, key=lambda s: float(a @ np.array(sides[s])))
+    cam = rig.cameras[camera or rig.camera_names[0]]
+    proj = rig.projector
+    if proj.model == "telecentric":
+        toward = -proj.R_dev_world[2]
+    else:
+        centre = proj.R_dev_world.T @ (-np.asarray(proj.t_dev, dtype=float))
+        toward = -proj.R_dev_world[2]
+        # the scene point on the projector's axis nearest the camera's axis
+        if cam.model != "telecentric":
+            c_cam = cam.R_dev_world.T @ (-np.asarray(cam.t_dev, dtype=float))
+            d_cam, d_proj = cam.R_dev_world[2], proj.R_dev_world[2]
+            A = np.array([[d_proj @ d_proj, -d_proj @ d_cam], [d_proj @ d_cam, -d_cam @ d_cam]])
+            b = np.array([(c_cam - centre) @ d_proj, (c_cam - centre) @ d_cam])
+            s = np.linalg.solve(A, b)[0]
+            toward = -s * d_proj
+    x, y, _ = cam.R_dev_world @ toward
+    if abs(x) >= abs(y):
+        return "right" if x > 0 else "left"
+    return "bottom" if y > 0 else "top"
 
 
 def calibration_manifest(vrig: VirtualRig, poses) -> CalibrationSetManifest:
-    """The calibration-set manifest of a virtual rig's poses (reference = first), with
-    the side of its projector (:func:`projector_side`), as a user would note it."""
-    cam, proj = vrig.camera.intrinsics, vrig.projector.intrinsics
+    """The calibration-set manifest of a virtual rig's poses (reference = first): each
+    device's model (and pixel size where telecentric) and, for one camera, the side of
+    its projector (:func:`projector_side`), as a user would note it."""
     names = tuple(p.name for p in poses)
+    devices = dict(vrig.rig.cameras)
+    devices["projector"] = vrig.projector
+    models = {k: d.model for k, d in devices.items()}
+    sizes = {k: (float(d.intrinsics.du), float(d.intrinsics.dv)) for k, d in devices.items()
+             if d.model == "telecentric"}
+    side = projector_side(vrig) if len(vrig.rig.cameras) == 1 else None
     return CalibrationSetManifest(target=vrig.target,
-                                  camera_pixel_size=(float(cam.du), float(cam.dv)),
-                                  projector_pixel_size=(float(proj.du), float(proj.dv)),
-                                  poses=names, reference_pose=names[0],
-                                  projector_side=projector_side(vrig))
+                                  camera_pixel_size=sizes.get("camera"),
+                                  projector_pixel_size=sizes.get("projector"),
+                                  poses=names, reference_pose=names[0], models=models,
+                                  pixel_sizes=sizes, projector_side=side)
 
 
-def _pose_seed(seed: int, k: int) -> int:
-    return int(np.random.SeedSequence([int(seed), int(k)]).generate_state(1)[0])
+def _pose_seed(seed: int, k: int, camera_index: int = 0) -> int:
+    key = [int(seed), int(k)] + ([int(camera_index)] if camera_index else [])
+    return int(np.random.SeedSequence(key).generate_state(1)[0])
 
 
 def iter_calibration_set(vrig: VirtualRig, poses, *, groups=None, seed: int = 0,
-                         progress: Callable | None = None
+                         progress: Callable | None = None, camera: str | None = None
                          ) -> Iterator[tuple[str, Scan, Truth, CalibrationPose]]:
     """Render the poses one by one (bounded memory): yields (name, scan, truth, pose).
 
-    ``progress(done, total)`` counts poses.
+    ``progress(done, total)`` counts poses. ``camera``: which camera of the rig renders
+    (default the first; each camera has its own noise).
     """
     if groups is None:
         groups = default_groups(vrig)
+    ci = 0 if camera is None else vrig.rig.camera_names.index(camera)
+    view = vrig if camera is None else vrig.for_camera(camera)
     for k, pose in enumerate(poses):
         plate = CirclePlate(R_world_target=pose.R_world_target,
                             t_world_target=pose.t_world_target, rows=vrig.target.rows,
                             cols=vrig.target.cols, pitch=vrig.target.pitch_mm,
                             diameter=vrig.target.diameter_mm)
-        scan, truth = render_scan(vrig, plate, groups, seed=_pose_seed(seed, k))
+        scan, truth = render_scan(view, plate, groups, seed=_pose_seed(seed, k, ci))
         truth.features["pose_kind"] = pose.kind
         if progress is not None:
             progress(k + 1, len(poses))

@@ -14,6 +14,27 @@
     The same geometry with a 4 x 4 binned camera (320 x 256, 20.8 um pixels) and a 2 x 2
     binned projector (400 x 300, 27.4 um pixels), for tests: the same plate fits and the
     default fringe ladder still has >= 6 projector pixels per period.
+``mixed``
+    The paper's telecentric camera with a pinhole projector, the rig most telecentric
+    profilometers use (Li & Zhang 2015): the projector is the paper's 800 x 600 panel
+    (13.7 um) behind a 20 mm lens focused 150 mm away, at the plate centre, along the paper
+    projector's axis (25.7 deg from the camera's), so it lights about 71 x 53 mm
+    there (the camera's whole field, tilted); mild barrel distortion (k1 = -0.06).
+``macro``
+    A pinhole camera and a pinhole projector (Zhang & Huang 2006): a 1280 x 1024 camera
+    with 4.8 um pixels behind a 25 mm lens (f/11) 200 mm from the plate, field 43 x 34 mm,
+    depth of field about 12 mm (circle of confusion 2 pixels); a 1280 x 800 DLP panel
+    (7.6 um mirrors) behind a 28 mm lens, 200 mm away on the other side (it lights about
+    60 x 37 mm): 25 deg between the axes, baseline about 87 mm. Distortion as in
+    C-mount lenses of this class (k1 = -0.15: about 2 px at the camera's corners).
+``stereo``
+    Two of the ``macro`` cameras at +-15 deg about a ``macro`` projector in the middle
+    (30 deg between the cameras, baseline about 104 mm): the layout of most commercial
+    and open structured-light scanners. Pinhole cameras because that is what such
+    scanners use, and because a pinhole pair calibrated from a flat target has no mirror
+    ambiguity (a telecentric pair does: it would need a side given by the user); the
+    telecentric models are exercised by ``paper`` and ``mixed``. The projector only
+    codes the phase; its calibration is optional.
 """
 
 from __future__ import annotations
@@ -22,13 +43,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from telefringe.devices.pinhole import PinholeDevice, PinholeIntrinsics
 from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import Intrinsics, TelecentricDevice
 from telefringe.geometry.so3 import rotation_from_rotvec
 from telefringe.targets.grid import CircleGridTarget
 
 __all__ = ["Photometry", "VirtualRig", "get_preset", "crop_camera", "PRESETS", "PAPER_TARGET",
-           "HDR_EXPOSURES"]
+           "HDR_EXPOSURES", "bin_camera_any"]
 
 #: The calibration plate of the paper: 9 x 11 dark circles, pitch 3 mm, diameter 1.5 mm.
 PAPER_TARGET = CircleGridTarget(rows=9, cols=11, pitch_mm=3.0, diameter_mm=1.5)
@@ -128,6 +150,17 @@ class Photometry:
         if not (np.isfinite(self.specular_sigma_deg) and self.specular_sigma_deg > 0):
             raise ValueError("Photometry.specular_sigma_deg must be > 0")
 
+    def noise_model(self):
+        """The camera's noise as the decoder models it
+        (:class:`telefringe.fringes.phase.NoiseModel`, in DN of the stored images): read
+        noise and shot noise from ``read_noise_e`` and ``full_well_e``, quantisation of
+        integer images. What a user would measure on a real camera (photon transfer)."""
+        from telefringe.fringes.phase import NoiseModel
+
+        dn_per_e = 255.0 / self.full_well_e
+        return NoiseModel(read_noise=self.read_noise_e * dn_per_e,
+                          gain=dn_per_e).scaled(self.max_value / 255.0)
+
     @property
     def max_value(self) -> float:
         """The camera's saturation value as stored (255, 65535)."""
@@ -154,6 +187,9 @@ class VirtualRig:
         The calibration plate the rig is calibrated with.
     depth_of_field_mm : float
         Usable depth around z = 0 (the scene should stay within +- half of it).
+    calibration_tilt_deg : float
+        Largest plate tilt of a simulated calibration set (a pinhole device needs
+        larger tilts than a telecentric one to see its focal length).
     """
 
     name: str
@@ -161,14 +197,33 @@ class VirtualRig:
     photometry: Photometry = field(default_factory=Photometry)
     target: CircleGridTarget = PAPER_TARGET
     depth_of_field_mm: float = 5.0
+    calibration_tilt_deg: float = 15.0
 
     @property
-    def camera(self) -> TelecentricDevice:
+    def camera(self):
+        """The reference (first) camera: the one the renderer renders."""
         return self.rig.camera
 
     @property
-    def projector(self) -> TelecentricDevice:
+    def projector(self):
         return self.rig.projector
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        return self.rig.camera_names
+
+    def for_camera(self, name: str) -> VirtualRig:
+        """The rig seen by its camera ``name`` (that camera first, the others dropped):
+        what the renderer renders for that camera."""
+        from dataclasses import replace
+
+        if name not in self.rig.cameras:
+            raise ValueError(f"no camera {name!r} in rig {self.name!r} (cameras: "
+                             f"{', '.join(self.rig.camera_names)})")
+        if name == self.rig.camera_names[0] and len(self.rig.cameras) == 1:
+            return self
+        return replace(self, rig=Rig(cameras={name: self.rig.cameras[name]},
+                                     projector=self.rig.projector))
 
     def with_photometry(self, **changes) -> VirtualRig:
         """A copy whose photometry has some fields replaced."""
@@ -229,7 +284,109 @@ def _fast() -> VirtualRig:
     return VirtualRig(name="fast", rig=rig)
 
 
-PRESETS = {"paper": _paper, "fast": _fast}
+def _look_at(centre_world, target_world, x_hint) -> np.ndarray:
+    """R_dev_world of a device at ``centre_world`` whose optical axis (+z) points at
+    ``target_world``, its x axis (+u) as close to ``x_hint`` as the axis allows."""
+    z = np.asarray(target_world, dtype=float) - np.asarray(centre_world, dtype=float)
+    z /= np.linalg.norm(z)
+    x = np.asarray(x_hint, dtype=float)
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    return np.array([x, np.cross(z, x), z])
+
+
+def _pinhole_at(intr: PinholeIntrinsics, centre_world, target_world, x_hint) -> PinholeDevice:
+    R = _look_at(centre_world, target_world, x_hint)
+    return PinholeDevice(intr, R, -R @ np.asarray(centre_world, dtype=float))
+
+
+def _tilted(axis_down, angle_deg: float, about) -> np.ndarray:
+    """``axis_down`` rotated by ``angle_deg`` about ``about`` (unit vectors, world)."""
+    a = np.asarray(about, dtype=float)
+    return rotation_from_rotvec(np.radians(angle_deg) * a / np.linalg.norm(a)) @ axis_down
+
+
+def _mixed() -> VirtualRig:
+    Rc, Rp = _paper_rotations()
+    cam = Intrinsics(m=0.1597, du=0.0052, dv=0.0052, u0=474.9241, v0=513.0791,
+                     k1=1.5e-4, s1=-2e-5, s2=3e-5, width=1280, height=1024)
+    centre = _plate_centre(PAPER_TARGET)
+    f_px = (20.0 * 150.0 / 130.0) / 0.0137  # 20 mm lens focused at 150 mm
+    proj = PinholeIntrinsics(fx=f_px, fy=f_px, cx=407.3, cy=318.6, k1=-0.06, k2=0.03,
+                             p1=1.5e-4, p2=-1e-4, width=800, height=600)
+    projector = _pinhole_at(proj, centre - 150.0 * Rp[2], centre, Rp[0])
+    rig = Rig(_centred_device(cam, Rc, centre), projector)
+    return VirtualRig(name="mixed", rig=rig)
+
+
+# pinhole-equivalent focal lengths: a lens of focal length f focused at distance d has its
+# image plane at f d / (d - f) (thin lens)
+_MACRO_CAMERA = PinholeIntrinsics(fx=(25.0 * 200 / 175) / 0.0048,
+                                  fy=(25.0 * 200 / 175) / 0.0048, cx=645.2, cy=506.7,
+                                  k1=-0.15, k2=0.2, p1=3e-4, p2=-2e-4, width=1280,
+                                  height=1024)
+_MACRO_PROJECTOR = PinholeIntrinsics(fx=(28.0 * 200 / 172) / 0.0076,
+                                     fy=(28.0 * 200 / 172) / 0.0076, cx=636.4, cy=412.8,
+                                     k1=-0.05, k2=0.04, p1=1e-4, p2=1e-4, width=1280,
+                                     height=800)
+
+
+def _macro() -> VirtualRig:
+    centre = _plate_centre(PAPER_TARGET)
+    down = np.array([0.0, 0.0, -1.0])
+    # the camera 12.5 deg to one side of the vertical, the projector 12.5 deg to the other
+    cam_axis = _tilted(down, 12.5, (0.0, 1.0, 0.0))
+    proj_axis = _tilted(down, -12.5, (0.0, 1.0, 0.0))
+    cam = _pinhole_at(_MACRO_CAMERA, centre - 200.0 * cam_axis, centre, (1.0, 0.0, 0.0))
+    proj = _pinhole_at(_MACRO_PROJECTOR, centre - 200.0 * proj_axis, centre, (1.0, 0.0, 0.0))
+    return VirtualRig(name="macro", rig=Rig(cam, proj), depth_of_field_mm=12.0,
+                      calibration_tilt_deg=22.0)
+
+
+def _stereo() -> VirtualRig:
+    centre = _plate_centre(PAPER_TARGET)
+    down = np.array([0.0, 0.0, -1.0])
+    cams = {}
+    for name, ang in (("camera", 15.0), ("camera_2", -15.0)):
+        axis = _tilted(down, ang, (0.0, 1.0, 0.0))
+        cams[name] = _pinhole_at(_MACRO_CAMERA, centre - 200.0 * axis, centre,
+                                 (1.0, 0.0, 0.0))
+    proj = _pinhole_at(_MACRO_PROJECTOR, centre - 200.0 * down + np.array([0.0, 0.0, 0.0]),
+                       centre, (1.0, 0.0, 0.0))
+    return VirtualRig(name="stereo", rig=Rig(cameras=cams, projector=proj),
+                      depth_of_field_mm=12.0, calibration_tilt_deg=22.0)
+
+
+PRESETS = {"paper": _paper, "fast": _fast, "mixed": _mixed, "macro": _macro,
+           "stereo": _stereo}
+
+
+def bin_camera_any(vrig: VirtualRig, factor: int) -> VirtualRig:
+    """The rig with every camera's pixels binned ``factor`` x ``factor`` (either model):
+    the binned pixel b covers fine pixels ``[factor b, factor b + factor - 1]``; the
+    geometry is unchanged. For small, fast test rigs."""
+    from dataclasses import replace
+
+    f = int(factor)
+    if f < 1:
+        raise ValueError(f"factor must be >= 1, got {factor!r}")
+    if f == 1:
+        return vrig
+    cams = {}
+    for name, cam in vrig.rig.cameras.items():
+        k = cam.intrinsics
+        if cam.model == "telecentric":
+            intr = replace(k, du=k.du * f, dv=k.dv * f, u0=(k.u0 - (f - 1) / 2.0) / f,
+                           v0=(k.v0 - (f - 1) / 2.0) / f, width=k.width // f,
+                           height=k.height // f)
+        else:
+            intr = replace(k, fx=k.fx / f, fy=k.fy / f, cx=(k.cx - (f - 1) / 2.0) / f,
+                           cy=(k.cy - (f - 1) / 2.0) / f, width=k.width // f,
+                           height=k.height // f)
+        cams[name] = cam.with_pose(cam.R_dev_world, cam.t_dev).__class__(
+            intr, cam.R_dev_world, cam.t_dev)
+    return replace(vrig, name=f"{vrig.name}/bin{f}",
+                   rig=Rig(cameras=cams, projector=vrig.projector))
 
 
 def crop_camera(vrig: VirtualRig, *, col0: int, row0: int, width: int, height: int
@@ -252,7 +409,8 @@ def crop_camera(vrig: VirtualRig, *, col0: int, row0: int, width: int, height: i
 
 
 def get_preset(name: str) -> VirtualRig:
-    """The virtual rig called ``name`` ("paper" or "fast").
+    """The virtual rig called ``name`` (see :data:`PRESETS`: "paper", "fast", "mixed",
+    "macro", "stereo").
 
     Raises
     ------

@@ -9,12 +9,17 @@ Physics, in the order light meets it
    pixel values with box and Gaussian (error functions), tabulated every 1/32 projector
    pixel and linearly interpolated (error <= 1e-4 of the pattern contrast, tested).
    The panel edges (beyond which there is no light) are blurred the same way.
-   Collimated illumination along the projector axis.
-2. Scene: each camera sub-pixel ray (orthographic, through the camera's inverse
-   distortion) meets the scene; the hit point's projector coordinate comes from
-   ``rig.projector.project`` (distortion included); a ray toward the projector tests for
-   shadow. Lambertian ``albedo * cos(incidence)``, plus a Gaussian specular lobe around
-   the mirror direction for shiny parts, plus ambient light ``ambient * albedo``.
+   A telecentric projector: collimated light along its axis. A pinhole projector: light
+   from its projection centre, whose irradiance falls as the inverse square of the
+   distance (relative to the depth of the world origin in the projector frame).
+2. Scene: each camera sub-pixel ray meets the scene: orthographic rays through the
+   inverse distortion for a telecentric camera, rays from the projection centre through
+   the inverse distortion (``camera.backproject``) for a pinhole one. The hit point's
+   projector coordinate comes from ``rig.projector.project`` (distortion included); a ray
+   toward the projector (along its axis, or toward its centre) tests for shadow.
+   Lambertian ``albedo * cos(incidence)``, plus a Gaussian specular lobe around the
+   mirror direction for shiny parts, plus ambient light ``ambient * albedo``. A pinhole
+   camera's lens passes ``cos^4`` of the ray's angle to the axis (natural vignetting).
 3. Camera: integration over each square pixel: 2 x 2 Gauss-Legendre samples on pixels
    that see one smooth surface patch, ``edge_supersample`` x ``edge_supersample`` (>=
    ``supersample``) exactly traced midpoint samples on pixels that straddle an edge
@@ -42,6 +47,7 @@ from telefringe.simulate import _kernels as _k
 from telefringe.simulate.presets import VirtualRig
 
 __all__ = ["Truth", "Geometry", "default_groups", "render_scan", "trace_geometry",
+           "image_radius_px",
            "projector_profile", "projector_profile_exact", "render_images"]
 
 #: Distance (mm) behind the scene from which rays start.
@@ -263,6 +269,62 @@ def _sub_offsets(n: int) -> np.ndarray:
     return np.stack([du.ravel(), dv.ravel()], axis=1)
 
 
+def _camera_rays(cam, u: np.ndarray, v: np.ndarray):
+    """Rays of camera pixels (u, v) (N,): origins (N, 3) mm outside the scene, unit
+    directions (N, 3), and the lens's relative illumination (N,) (1 for a telecentric
+    lens; ``cos^4`` of the angle to the optical axis for a pinhole one: natural
+    vignetting).
+
+    Telecentric: parallel rays through the inverse distortion, starting 500 mm behind
+    the zero-depth plane (compiled kernel). Any other model: ``cam.backproject`` (rays
+    from the projection centre through the inverse distortion).
+    """
+    u = np.ascontiguousarray(u, dtype=float)
+    v = np.ascontiguousarray(v, dtype=float)
+    if cam.model == "telecentric":
+        intr_c, R_c, t_c = _tk.kernel_args(cam)
+        o, ok = _k.camera_rays(u, v, intr_c, R_c, t_c, _RAY_START_MM)
+        if not np.all(ok):
+            raise ConvergenceError(f"the camera's distortion cannot be inverted at "
+                                   f"{int(np.count_nonzero(~ok))} sample(s)")
+        d = np.ascontiguousarray(np.broadcast_to(cam.axis_world, o.shape))
+        return o, d, np.ones(u.shape[0])
+    rays = cam.backproject(u, v)
+    d = np.ascontiguousarray(np.broadcast_to(rays.direction, (u.shape[0], 3)))
+    o = np.ascontiguousarray(np.broadcast_to(rays.origin, (u.shape[0], 3)))
+    cos_axis = d @ cam.R_dev_world[2]
+    return o, d, cos_axis ** 4
+
+
+def _projector_light(proj, P: np.ndarray):
+    """How the projector lights world points P (N, 3) (NaN rows: no point).
+
+    Returns the projector coordinates (up, vp) (N,) (distortion included), unit vectors
+    toward the projector (N, 3), the distance (N,) mm from which a shadow ray toward P
+    starts (it starts at ``P + distance * to_proj``), and the relative irradiance (N,)
+    of the light at P (before the incidence cosine).
+
+    Telecentric: collimated light along the axis (shadow rays from 500 mm away),
+    irradiance 1. Any other model (a pinhole projector): light from the projection
+    centre (shadow rays start there), irradiance falling as the inverse square of the
+    distance, relative to the depth of the world origin in the projector frame.
+    """
+    if proj.model == "telecentric":
+        up, vp = _tk.project_many(P, *_tk.kernel_args(proj))
+        to_proj = np.ascontiguousarray(np.broadcast_to(-proj.axis_world, P.shape))
+        n = P.shape[0]
+        return up, vp, to_proj, np.full(n, _RAY_START_MM), np.ones(n)
+    up, vp = proj.project(P)
+    C = proj.centre_world
+    vec = C - P
+    dist = np.linalg.norm(vec, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        to_proj = np.ascontiguousarray(vec / dist[:, None])
+        r_ref = float(proj.t_dev[2])  # depth of the world origin in the projector frame
+        irr = (r_ref / dist) ** 2
+    return up, vp, to_proj, dist, irr
+
+
 def _trace(vrig: VirtualRig, scene, u: np.ndarray, v: np.ndarray) -> dict:
     """Trace camera rays through pixels (u, v) (N,) into the scene and shade them.
 
@@ -273,29 +335,33 @@ def _trace(vrig: VirtualRig, scene, u: np.ndarray, v: np.ndarray) -> dict:
     """
     cam, proj = vrig.camera, vrig.projector
     ph = vrig.photometry
-    intr_c, R_c, t_c = _tk.kernel_args(cam)
-    o, ok = _k.camera_rays(np.ascontiguousarray(u, dtype=float),
-                           np.ascontiguousarray(v, dtype=float), intr_c, R_c, t_c,
-                           _RAY_START_MM)
-    if not np.all(ok):
-        raise ConvergenceError(f"the camera's distortion cannot be inverted at "
-                               f"{int(np.count_nonzero(~ok))} sample(s)")
-    d_cam = np.ascontiguousarray(cam.axis_world)
+    o, d_cam, vignette = _camera_rays(cam, u, v)
     hits = scene.intersect(o, d_cam)
     hit = hits.hit
-    d_proj = np.ascontiguousarray(proj.axis_world)
-    to_proj = -d_proj
-    P, shadow_origin = _k.hit_points(o, d_cam, hits.t, hits.normal, to_proj, _RAY_START_MM)
-    up, vp = _tk.project_many(P, *_tk.kernel_args(proj))
+    P = _k.hit_points(o, d_cam, hits.t)
+    up, vp, to_proj, start, irr = _projector_light(proj, P)
+    shadow_origin = _k.shadow_origins(P, hits.normal, to_proj, start)
     # rays from the projector side toward each facing point: lit if nothing comes first
-    unshadowed = scene.intersect(shadow_origin, d_proj).t >= _RAY_START_MM - _SHADOW_EPS_MM
-    h_vec = to_proj - d_cam
-    h_vec = h_vec / np.linalg.norm(h_vec)
+    first = scene.intersect(shadow_origin, -to_proj).t
+    unshadowed = first >= start - _SHADOW_EPS_MM
+    if cam.model == "telecentric" and proj.model == "telecentric":  # one half vector
+        h1 = -proj.axis_world - cam.axis_world
+        h_vec = np.ascontiguousarray(np.broadcast_to(h1 / np.linalg.norm(h1), P.shape))
+    else:
+        h_vec = to_proj - d_cam
+        with np.errstate(invalid="ignore"):
+            h_vec = np.ascontiguousarray(h_vec / np.linalg.norm(h_vec, axis=1,
+                                                                keepdims=True))
     W, H = proj.intrinsics.width, proj.intrinsics.height
     wu, wv, amb, lit = _k.shade(hits.t, hits.normal, hits.albedo, hits.specular, unshadowed,
                                 up, vp, to_proj, h_vec, np.radians(ph.specular_sigma_deg),
                                 float(ph.dn_per_radiance), float(ph.ambient), float(W),
                                 float(H), float(ph.projector_blur_px))
+    if cam.model != "telecentric" or proj.model != "telecentric":
+        gain = np.where(np.isfinite(irr), irr, 0.0) * vignette
+        wu *= gain
+        wv *= gain
+        amb *= vignette
     return {"hit": hit, "P": P, "up": up, "vp": vp, "normal": hits.normal, "part": hits.part,
             "albedo": hits.albedo, "specular": hits.specular, "lit": lit, "wu": wu, "wv": wv,
             "ambient": amb}
@@ -385,7 +451,7 @@ def trace_geometry(vrig: VirtualRig, scene, *, exact: bool = False) -> Geometry:
     sub-samples exactly. ``exact=True`` traces every pixel that way.
     """
     ph = vrig.photometry
-    rows0, cols0 = vrig.camera.intrinsics.shape
+    cols0, rows0 = vrig.camera.image_size
     pad = _blur_pad(ph.camera_blur_px)
     rows, cols = rows0 + 2 * pad, cols0 + 2 * pad
     S = int(ph.supersample)
@@ -421,6 +487,15 @@ def trace_geometry(vrig: VirtualRig, scene, *, exact: bool = False) -> Geometry:
                     wv2=wv2, truth=truth)
 
 
+def image_radius_px(device, points_world, radius_mm: float) -> np.ndarray:
+    """Largest image radius (px) of a circle of ``radius_mm`` centred at each of
+    ``points_world`` (n, 3), whatever its orientation: the radius times the largest
+    singular value of the device's projection Jacobian there. (n,) px."""
+    P = np.asarray(points_world, dtype=float).reshape(-1, 3)
+    J = device.project_jacobian(P)[2]
+    return float(radius_mm) * np.linalg.svd(J, compute_uv=False)[:, 0]
+
+
 def _features(vrig: VirtualRig, scene) -> dict:
     """Scene features plus their images in the camera (and projector) pixels."""
     f = dict(scene.features())
@@ -434,8 +509,8 @@ def _features(vrig: VirtualRig, scene) -> dict:
             up, vp = proj.project(pts)
             f[f"{name}_proj_px"] = np.stack([up, vp], axis=-1)
     if "circle_centres_px" in f:
-        rows, cols = cam.intrinsics.shape
-        r_px = 0.5 * float(f["diameter_mm"]) * cam.intrinsics.m / cam.intrinsics.du
+        cols, rows = cam.image_size
+        r_px = image_radius_px(cam, f["circle_centres_world"], 0.5 * float(f["diameter_mm"]))
         c = f["circle_centres_px"]
         f["circle_in_image"] = ((c[:, 0] >= r_px + 2) & (c[:, 0] <= cols - 3 - r_px)
                                 & (c[:, 1] >= r_px + 2) & (c[:, 1] <= rows - 3 - r_px))
@@ -526,7 +601,8 @@ def render_images(geom: Geometry, vrig: VirtualRig, axis: str, levels: np.ndarra
 
 def render_scan(vrig: VirtualRig, scene, groups, *, white: bool = True, black: bool = True,
                 exposures: Sequence[float] = (1.0,), seed: int = 0,
-                progress: Callable | None = None) -> tuple[Scan, Truth]:
+                progress: Callable | None = None,
+                geometry: Geometry | None = None) -> tuple[Scan, Truth]:
     """Render a scan of ``scene`` with the virtual rig.
 
     Parameters
@@ -542,6 +618,9 @@ def render_scan(vrig: VirtualRig, scene, groups, *, white: bool = True, black: b
     seed : int
         Seeds the camera noise.
     progress : callable ``progress(done, total)``, optional.
+    geometry : Geometry, optional
+        ``trace_geometry(vrig, scene)`` computed before (repeated scans of one scene with
+        other noise reuse it; it must come from this rig and scene).
 
     Returns
     -------
@@ -573,7 +652,7 @@ def render_scan(vrig: VirtualRig, scene, groups, *, white: bool = True, black: b
         if progress is not None:
             progress(done[0], total)
 
-    geom = trace_geometry(vrig, scene)
+    geom = trace_geometry(vrig, scene) if geometry is None else geometry
     tick(4)
     rng = np.random.default_rng(seed)
     stacks = []

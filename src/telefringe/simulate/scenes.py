@@ -2,8 +2,9 @@
 
 Every scene is a frozen dataclass with
 
-- ``intersect(origins, direction) -> Hits``: first intersection of parallel rays
-  (orthographic: ``origins`` (N, 3) mm, one unit ``direction`` (3,)) with the scene.
+- ``intersect(origins, direction) -> Hits``: first intersection of rays with the scene:
+  ``origins`` (N, 3) mm and unit directions, one (3,) for parallel rays (a telecentric
+  device) or one per ray (N, 3) (rays from a pinhole device's centre).
   Rays must start outside the scene (the renderer starts them 500 mm away); only hits
   with ``t > 0`` count; a ray whose origin holds NaN hits nothing.
 - ``features() -> dict``: the scene's ground-truth features (JSON-friendly values or
@@ -79,18 +80,28 @@ class Hits:
 
 
 def _check_rays(origins, direction):
+    """Validated origins (N, 3) and per-ray unit directions (N, 3), contiguous floats
+    (a single direction (3,) is repeated for every ray)."""
     o = np.ascontiguousarray(origins, dtype=float)
-    d = np.ascontiguousarray(direction, dtype=float).reshape(-1)
+    d = np.asarray(direction, dtype=float)
     if o.ndim != 2 or o.shape[1] != 3:
         raise ValueError(f"origins must have shape (N, 3), got {o.shape}")
-    if d.shape != (3,) or not np.all(np.isfinite(d)) or abs(np.linalg.norm(d) - 1) > 1e-9:
-        raise ValueError("direction must be a finite unit (3,) vector")
-    return o, d
+    if d.shape == (3,):
+        if not np.all(np.isfinite(d)) or abs(np.linalg.norm(d) - 1) > 1e-9:
+            raise ValueError("direction must be a finite unit (3,) vector")
+        return o, np.ascontiguousarray(np.broadcast_to(d, o.shape))
+    if d.shape != o.shape:
+        raise ValueError(f"direction must have shape (3,) or {o.shape}, got {d.shape}")
+    ok = np.isfinite(o[:, 0])
+    if not (np.all(np.isfinite(d[ok]))
+            and np.all(np.abs(np.linalg.norm(d[ok], axis=1) - 1) <= 1e-9)):
+        raise ValueError("directions must be finite unit vectors (one per ray)")
+    return o, np.ascontiguousarray(np.where(ok[:, None], d, 0.0))
 
 
 def _face_ray(normal, d):
-    """Flip normals to face the incoming ray."""
-    s = np.where(normal @ d > 0, -1.0, 1.0)
+    """Flip normals to face the incoming rays (``d`` (N, 3))."""
+    s = np.where(np.einsum("ij,ij->i", normal, d) > 0, -1.0, 1.0)
     return normal * s[:, None]
 
 
@@ -406,7 +417,8 @@ class BGA:
         hmax = float(np.max(self.ball_height + self.height_offsets))
         # every ball a ray can meet has its centre within reach (x-y) of the ray's point
         # at mid-height: the cap's radius plus the ray's x-y travel over half the height
-        half_span = 0.5 * hmax * np.hypot(d[0], d[1]) / max(abs(d[2]), 1e-12)
+        slope = np.hypot(d[:, 0], d[:, 1]) / np.maximum(np.abs(d[:, 2]), 1e-12)
+        half_span = 0.5 * hmax * (float(np.max(slope)) if len(slope) else 0.0)
         reach = 1.0001 * (r + half_span) + 1e-9
         chip = np.array([self.origin[0] - self.chip_margin,
                          self.origin[0] + (self.cols - 1) * self.pitch + self.chip_margin,

@@ -33,11 +33,15 @@ def write_calibration_report(folder, calib) -> list[str]:
 
     folder = Path(folder)
     names = []
-    for dev, obs, res, size in (
-            ("camera", calib.camera_observations, calib.residuals_camera,
-             (calib.rig.camera.intrinsics.width, calib.rig.camera.intrinsics.height)),
-            ("projector", calib.projector_observations, calib.residuals_projector,
-             (calib.rig.projector.intrinsics.width, calib.rig.projector.intrinsics.height))):
+    devices = dict(calib.rig.cameras)
+    if calib.rig.projector is not None:
+        devices["projector"] = calib.rig.projector
+    for dev, device in devices.items():
+        obs = getattr(calib, f"{dev}_observations", None)
+        res = getattr(calib, f"residuals_{dev}", None)
+        if obs is None or res is None:
+            continue
+        size = device.image_size
         ok = np.all(np.isfinite(res), axis=2) & np.all(np.isfinite(obs), axis=2)
         o, r = obs[ok], res[ok]
         fig, ax = plt.subplots(figsize=(8, 6.5))
@@ -71,8 +75,11 @@ def write_calibration_report(folder, calib) -> list[str]:
         names.append(fname)
     fig, ax = plt.subplots(figsize=(max(6, 0.5 * len(calib.pose_names) + 2), 3.5))
     x = np.arange(len(calib.pose_names))
-    ax.bar(x - 0.2, calib.rms_per_pose[:, 0], 0.4, label="camera")
-    ax.bar(x + 0.2, calib.rms_per_pose[:, 1], 0.4, label="projector")
+    per_pose = np.asarray(calib.rms_per_pose).reshape(len(calib.pose_names), -1)
+    width = 0.8 / max(per_pose.shape[1], 1)
+    for j, dev in enumerate(list(devices)[:per_pose.shape[1]]):
+        ax.bar(x + (j - (per_pose.shape[1] - 1) / 2) * width, per_pose[:, j], width,
+               label=dev)
     ax.set_xticks(x, calib.pose_names, rotation=60, fontsize=8)
     ax.set_ylabel("RMS reprojection error (px)")
     ax.legend()

@@ -88,6 +88,10 @@ class BGAMeasurement:
     psf_balls : int, balls the point-spread parameters were estimated from (0 without
         the model).   psf_converged : bool, the Gauss-Newton rounds of that estimate
         converged (step below 5 % of its sigma); None without the model.
+    uncertainty : dict of str -> Uncertainty, or None: ``"height"``, ``"position"``,
+        ``"pitch_x"``, ``"pitch_y"``, ``"pitch_error_max"``, ``"coplanarity"`` with the
+        noise and calibration parts (set by
+        :func:`telefringe.metrology.uncertainty.bga_uncertainty`; None until then).
     """
 
     index: np.ndarray
@@ -118,6 +122,7 @@ class BGAMeasurement:
     psf_converged: bool | None = None
     sigma_height_noise: np.ndarray | None = None
     sigma_height_model: float = np.nan
+    uncertainty: dict | None = None
 
     def __post_init__(self):
         for key, reason in self.not_measured:

@@ -1,0 +1,107 @@
+"""`telefringe measure ... --rig rig.json`: the calibration's uncertainty in the CLI's
+output, the JSON summary and bga.csv (the virtual BGA read in a 160 x 160 px window of
+the paper rig, with the covariance of a synthetic calibration)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from test_calibrate import (
+    CAM_PIX,
+    CAM_SIZE,
+    PROJ_PIX,
+    PROJ_SIZE,
+    grid_points,
+    observe,
+    paper_like_rig,
+    side_of,
+    target_poses,
+)
+
+import telefringe.simulate.render as sim
+from telefringe.calibration.rig import calibrate_rig
+from telefringe.cli import main
+from telefringe.cli.reconstruct import reconstruct_to_folder
+from telefringe.io.rig_json import save_rig
+from telefringe.io.scan_json import write_scan
+from telefringe.simulate import scenes
+from telefringe.simulate.experiments import bga_window
+from telefringe.simulate.presets import HDR_EXPOSURES, crop_camera, get_preset
+
+
+@pytest.fixture(scope="module")
+def bga_and_rig(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("bga_unc")
+    paper = get_preset("paper")
+    col0, row0 = bga_window(paper, size=160)
+    vr = crop_camera(paper, col0=col0, row0=row0, width=160, height=160)
+    scan, _ = sim.render_scan(vr, scenes.make_scene("bga", seed=4), sim.default_groups(vr),
+                              exposures=HDR_EXPOSURES, seed=4)
+    write_scan(tmp / "scan", scan)
+    reconstruct_to_folder(tmp / "scan", vr.rig, tmp / "out")
+    # a covariance of the right kind: a synthetic calibration of a paper-like rig
+    rng = np.random.default_rng(11)
+    rig0 = paper_like_rig()
+    P = grid_points(5, 6, pitch=5.0)
+    Rs, Ts = target_poses(6, rng, tilt_deg=15.0, centre=(12.5, 10.0, 0.0))
+    cam, proj = observe(rig0, P, Rs, Ts, rng)
+    cal = calibrate_rig(P, cam, proj, camera_pixel_size=CAM_PIX, projector_pixel_size=PROJ_PIX,
+                        camera_size=CAM_SIZE, projector_size=PROJ_SIZE,
+                        projector_side=side_of(rig0))
+    params = np.concatenate([vr.rig.camera.to_params(), vr.rig.projector.to_params()])
+    save_rig(tmp / "rig.json", replace(cal, rig=vr.rig, parameters=params))
+    wrong = crop_camera(paper, col0=col0, row0=row0, width=150, height=160)
+    save_rig(tmp / "wrong.json", replace(cal, rig=wrong.rig, parameters=params))
+    return tmp
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_measure_bga_with_the_calibration(bga_and_rig, capsys):
+    tmp = bga_and_rig
+    js = tmp / "bga.json"
+    assert main(["measure", "bga", str(tmp / "out"), "--rig", str(tmp / "rig.json"),
+                 "--json", str(js), "--force"]) == 0
+    text = capsys.readouterr()
+    said = text.out + text.err
+    assert "U (k=2)" in said and "calibration" in said
+    res = json.loads(js.read_text())
+    assert res["uncertainty_includes_calibration"] is True
+    unc = res["uncertainty"]
+    assert set(unc) == {"height", "position", "pitch_x", "pitch_y", "pitch_error_max",
+                        "coplanarity"}
+    h = unc["height"]
+    u_cal = np.asarray(h["u_calibration"])
+    assert u_cal.shape == (res["balls_found"],) and np.all(u_cal > 0)
+    np.testing.assert_allclose(h["U"], 2 * np.asarray(h["u"]))
+    np.testing.assert_allclose(h["u"], np.hypot(h["u_noise"], u_cal))
+    np.testing.assert_allclose(h["u_noise"], res["balls"]["sigma_height_mm"])
+    rows = [r for r in _rows(tmp / "out" / "bga.csv") if r["status"] == "ok"]
+    assert len(rows) == res["balls_found"]
+    uh = np.array([float(r["u_height_mm"]) for r in rows])
+    np.testing.assert_allclose(uh, h["u"], atol=1e-6)
+    np.testing.assert_allclose([float(r["U_height_mm"]) for r in rows], 2 * uh, atol=2e-6)
+    np.testing.assert_allclose([float(r["u_cal_height_mm"]) for r in rows], u_cal, atol=1e-6)
+    assert all(float(r["U_pos_x_mm"]) > 0 for r in rows)
+    # without --rig: the noise alone, said so; the CSV's new columns empty
+    assert main(["measure", "bga", str(tmp / "out"), "--json", str(js), "--force"]) == 0
+    res = json.loads(js.read_text())
+    assert res["uncertainty_includes_calibration"] is False and res["uncertainty"] is None
+    assert all(r["u_height_mm"] == "" for r in _rows(tmp / "out" / "bga.csv"))
+
+
+def test_a_rig_of_another_camera_is_refused(bga_and_rig, capsys):
+    tmp = bga_and_rig
+    js = tmp / "never.json"
+    assert main(["measure", "bga", str(tmp / "out"), "--rig", str(tmp / "wrong.json"),
+                 "--json", str(js), "--force"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--rig must be the rig that made it" in err[0]
+    assert not js.exists()
