@@ -57,7 +57,8 @@ def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.nd
     table ``1 / (1 + e')`` (float64) of ``model`` on the grid ``-pi + 2 pi j / n``, with n
     (>= n_min, from 4096 by factors of 4) the first size whose linear interpolation error,
     checked at every mid-point against the exact inverse, is <= 1e-8 rad, and g as a
-    Fourier series (:func:`_series`). Cached (thread-safe, at most
+    Fourier series (:func:`_series`; with a fifth element, whether 1 - g' from it is the
+    noise factor within NF_SERIES_TOL: :func:`_series_noise_ok`). Cached (thread-safe, at most
     ``_TABLE_CACHE_MAX_ENTRIES`` models and ``_TABLE_CACHE_MAX_BYTES``, least recently
     used evicted first); the arrays are read-only."""
     key = (model.periods, tuple(model.harmonics), np.asarray(model.cos_coef).tobytes(),
