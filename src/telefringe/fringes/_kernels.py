@@ -104,10 +104,16 @@ def table_correct32_array(phase, table, out):
 
 
 @nb.njit(inline="always", error_model="numpy")
-def _series_correct32(ph, s, c, m2, ca, cb, c0, d, n, zr, zi, dr, di, wr, wi, acc, nj):
+def _series_correct32(ph, s, c, m2, ca, cb, c0, d, n, zr, zi, dr, di, wr, wi, acc, nj,
+                      with_nf, da, db, fac):
     """ph = wrap(ph - g(ph)) in place, g(phi) = c0 + sum_{t=1..n} ca[t-1] cos(t d phi) +
     cb[t-1] sin(t d phi) (float32), the measured phase's cos and sin taken from the sums:
-    exp(i phi) = (C - i S) / R. No table look-up: the loops vectorise."""
+    exp(i phi) = (C - i S) / R. No table look-up: the loops vectorise.
+
+    With ``with_nf``, also the noise factor d(true)/d(measured) = 1 - g'(phi) into ``fac``
+    from the same powers of exp(i phi): g' = sum_t da[t-1] cos(t d phi) + db[t-1] sin(t d
+    phi), da = t d cb, db = -t d ca (set up and checked against the exact factor in
+    telefringe.fringes.fast)."""
     for j in range(nj):
         r2 = m2[j]
         inv = _ONE32 / math.sqrt(r2 if r2 > _ZERO32 else _ONE32)
@@ -128,17 +134,38 @@ def _series_correct32(ph, s, c, m2, ca, cb, c0, d, n, zr, zi, dr, di, wr, wi, ac
         wr[j] = dr[j]
         wi[j] = di[j]
         acc[j] = c0 + (a1 * dr[j] + b1 * di[j])
+    if with_nf:
+        e1 = da[0]
+        f1 = db[0]
+        for j in range(nj):
+            fac[j] = e1 * dr[j] + f1 * di[j]
     for t in range(1, n):
         at = ca[t]
         bt = cb[t]
+        if with_nf:
+            et = da[t]
+            ft = db[t]
+            for j in range(nj):
+                a = wr[j]
+                b = wi[j]
+                na = a * dr[j] - b * di[j]
+                nb_ = a * di[j] + b * dr[j]
+                wr[j] = na
+                wi[j] = nb_
+                acc[j] += at * na + bt * nb_
+                fac[j] += et * na + ft * nb_
+        else:
+            for j in range(nj):
+                a = wr[j]
+                b = wi[j]
+                na = a * dr[j] - b * di[j]
+                nb_ = a * di[j] + b * dr[j]
+                wr[j] = na
+                wi[j] = nb_
+                acc[j] += at * na + bt * nb_
+    if with_nf:
         for j in range(nj):
-            a = wr[j]
-            b = wi[j]
-            na = a * dr[j] - b * di[j]
-            nb_ = a * di[j] + b * dr[j]
-            wr[j] = na
-            wi[j] = nb_
-            acc[j] += at * na + bt * nb_
+            fac[j] = _ONE32 - fac[j]
     for j in range(nj):
         q = ph[j] - acc[j]
         q = q - _TWO_PI32 if q > _PI32 else q
@@ -146,15 +173,20 @@ def _series_correct32(ph, s, c, m2, ca, cb, c0, d, n, zr, zi, dr, di, wr, wi, ac
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
-def series_correct32_array(s, c, ca, cb, c0, d, n, out):
+def series_correct32_array(s, c, ca, cb, c0, d, n, out, da=None, db=None, fac=None):
     """The fused kernel's phase and series correction over 1-D float32 sums S, C (for
-    tests): out = wrap(atan2(-S, C) - g), g as in :func:`_series_correct32`."""
+    tests): out = wrap(atan2(-S, C) - g), g as in :func:`_series_correct32`; with da, db
+    (float32, like ca, cb) also the noise factor into ``fac`` (float32, like out)."""
     nj = s.size
     m2 = np.empty(nj, dtype=np.float32)
     _phase32(s, c, out, m2, nj)
     sc = np.empty((7, nj), dtype=np.float32)
-    _series_correct32(out, s, c, m2, ca, cb, c0, d, n, sc[0], sc[1], sc[2], sc[3], sc[4],
-                      sc[5], sc[6], nj)
+    if fac is None:
+        _series_correct32(out, s, c, m2, ca, cb, c0, d, n, sc[0], sc[1], sc[2], sc[3],
+                          sc[4], sc[5], sc[6], nj, False, ca, cb, sc[6])
+    else:
+        _series_correct32(out, s, c, m2, ca, cb, c0, d, n, sc[0], sc[1], sc[2], sc[3],
+                          sc[4], sc[5], sc[6], nj, True, da, db, fac)
 
 
 @nb.njit(inline="always")
@@ -232,7 +264,8 @@ def _phase32(s, c, ph, m2, nj):
 @nb.njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract"})
 def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, cw, s2w, c2w,
                  periods, length, tables, has_table, nf_tables, has_nf, ser_a, ser_b,
-                 ser_c0, ser_d, ser_n, has_series, max_value, min_mod2,
+                 ser_c0, ser_d, ser_n, has_series, ser_da, ser_db, nf_series, max_value,
+                 min_mod2,
                  max_res, full, noise_c, noise_gain, block_rows, tile,
                  out_u, out_mask, out_mod,
                  out_sigma, out_bg, out_exp, out_sat, out_low, out_shadow, out_rel):
@@ -262,6 +295,9 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
     nf_tables : (L, M) float64 noise factors d(true)/d(measured) (full only; where has_nf).
     ser_a, ser_b : (L, T) float32, ser_c0 : (L,) float32, ser_d, ser_n : (L,) int64: the
         correction as a Fourier series (see :func:`_series_correct32`), where has_series.
+    ser_da, ser_db : (L, T) float32: its derivative's series; nf_series : (L,) bool: the
+        noise factor (full only) is 1 - g' from it (where has_series; no table look-up),
+        else from nf_tables.
     min_mod2 : (L,) float32, thresholds on S^2 + C^2 (rounded up to float32).
     max_res : float, rad.
     full : bool. False: weights (p B)^2 and only out_u, out_mask, out_mod (B of the
@@ -327,6 +363,7 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
         wr = np.empty(tile, dtype=np.float32)
         wi = np.empty(tile, dtype=np.float32)
         gacc = np.empty(tile, dtype=np.float32)
+        nfac = np.empty(tile, dtype=np.float32)
         r0 = blk * block_rows
         r1 = min(rows, r0 + block_rows)
         for r in range(r0, r1):
@@ -402,6 +439,7 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                                 for j in range(nj):
                                     expo[j] = e if sel[j] else expo[j]
                     _phase32(s32, c32, ph, m2, nj)
+                    corrected = False
                     p = periods[lev]
                     inv_n = 1.0 / n_k
                     thr = min_mod2[lev]
@@ -425,7 +463,18 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                             sin2 = (m_two * a * b) * inv if pos else _ZERO32
                             quad = (sa[j] - (cos2 * c2[j] - sin2 * s2[j])) * inv_n32
                             dvar[j] = nc32 + ng32 * (quad if quad > _ZERO32 else _ZERO32)
-                        if has_nf[lev]:  # noise factor at the measured phase
+                        if has_series[lev] and nf_series[lev]:
+                            # noise factor 1 - g' at the measured phase from the series
+                            # (vectorised), with the correction itself
+                            _series_correct32(ph, s32, c32, m2, ser_a[lev], ser_b[lev],
+                                              ser_c0[lev], ser_d[lev], ser_n[lev], zr, zi,
+                                              dr, di, wr, wi, gacc, nj, True, ser_da[lev],
+                                              ser_db[lev], nfac)
+                            corrected = True
+                            for j in range(nj):
+                                fs = nfac[j]
+                                dvar[j] = dvar[j] * fs * fs
+                        elif has_nf[lev]:  # noise factor at the measured phase (table)
                             nft = nf_tables[lev]
                             for j in range(nj):
                                 i0, i1, f = _table_index(ph[j], tab_scale, m_tab)
@@ -440,10 +489,13 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                         wscale = _F32((2.0 * p * inv_n) ** 2)
                         for j in range(nj):
                             w32[j] = wscale * m2[j]
-                    if has_series[lev]:
+                    if corrected:
+                        pass
+                    elif has_series[lev]:
                         _series_correct32(ph, s32, c32, m2, ser_a[lev], ser_b[lev],
                                           ser_c0[lev], ser_d[lev], ser_n[lev], zr, zi, dr, di,
-                                          wr, wi, gacc, nj)
+                                          wr, wi, gacc, nj, False, ser_a[lev], ser_b[lev],
+                                          gacc)
                     elif has_table[lev]:  # (the look-up does not vectorise)
                         _table_correct32(ph, tables[lev], tab_scale, nj)
                     if lev == 0:

@@ -57,7 +57,8 @@ def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.nd
     table ``1 / (1 + e')`` (float64) of ``model`` on the grid ``-pi + 2 pi j / n``, with n
     (>= n_min, from 4096 by factors of 4) the first size whose linear interpolation error,
     checked at every mid-point against the exact inverse, is <= 1e-8 rad, and g as a
-    Fourier series (:func:`_series`). Cached (thread-safe, at most
+    Fourier series (:func:`_series`; with a fifth element, whether 1 - g' from it is the
+    noise factor within NF_SERIES_TOL: :func:`_series_noise_ok`). Cached (thread-safe, at most
     ``_TABLE_CACHE_MAX_ENTRIES`` models and ``_TABLE_CACHE_MAX_BYTES``, least recently
     used evicted first); the arrays are read-only."""
     key = (model.periods, tuple(model.harmonics), np.asarray(model.cos_coef).tobytes(),
@@ -76,7 +77,10 @@ def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.nd
         n *= 4
     grid = -np.pi + TWO_PI * np.arange(n) / n
     nf = np.array(model.noise_factor(grid), dtype=np.float64)
-    value = (g, nf, _series(g))
+    series = _series(g)
+    if series is not None:
+        series = (*series, _series_noise_ok(series, nf))
+    value = (g, nf, series)
     for arr in (g, nf, *(() if value[2] is None else value[2][:2])):
         arr.flags.writeable = False
     with _TABLE_CACHE_LOCK:
@@ -92,13 +96,16 @@ def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.nd
 
 #: the Fourier series of a correction may drop terms summing to at most this (rad)
 SERIES_TAIL = 1e-7
+#: ... and terms whose derivatives sum to at most this (rad/rad): the noise factor 1 - g'
+SERIES_DERIV_TAIL = 2e-7
 SERIES_MAX_TERMS = 48
 
 
 def _series(g: np.ndarray):
     """The correction table ``g`` (samples at ``-pi + 2 pi j / M``) as a Fourier series in
     harmonics of one order step d: ``g(phi) = c0 + sum_t a[t-1] cos(t d phi) + b[t-1]
-    sin(t d phi)``, its dropped terms summing to <= SERIES_TAIL rad; None when that needs
+    sin(t d phi)``, its dropped terms summing to <= SERIES_TAIL rad (and their
+    derivatives to <= SERIES_DERIV_TAIL, for the noise factor); None when that needs
     more than SERIES_MAX_TERMS terms (the kernel then interpolates the table).
 
     Returns (a, b, c0, d) or None.
@@ -114,6 +121,11 @@ def _series(g: np.ndarray):
     tail = np.cumsum(mag[order])
     kept = mag > 0
     kept[order[tail <= SERIES_TAIL]] = False  # the smallest terms, their sum within the bound
+    dmag = k * mag  # (the derivative's terms)
+    order = np.argsort(dmag)
+    kept[order[np.cumsum(dmag[order]) > SERIES_DERIV_TAIL]] = True
+    kept[0] = False
+    kept &= mag > 0
     keep = np.nonzero(kept)[0]
     if keep.size == 0:
         return np.zeros(1), np.zeros(1), c0, 1
@@ -123,6 +135,37 @@ def _series(g: np.ndarray):
         return None
     idx = d * np.arange(1, n + 1)
     return a[idx], b[idx], c0, d
+
+
+#: largest relative error of the noise factor 1 - g' from the series (float64, against the
+#: exact factor at every table point) for the fused kernel to use it; the float32
+#: evaluation adds ~1e-7 (tests/test_decode_fast.py bounds the total by 1e-6). The factor
+#: scales sigma, an uncertainty: 1e-6 relative is far below anything it is quoted to.
+NF_SERIES_TOL = 5e-7
+
+
+def _series_derivative(series):
+    """Coefficients (da, db) of g' = sum_t da[t-1] cos(t d phi) + db[t-1] sin(t d phi)
+    of the series (a, b, c0, d, ...) of :func:`_series`."""
+    a, b, _, d = series[:4]
+    k = d * np.arange(1, len(a) + 1)
+    return k * np.asarray(b), -k * np.asarray(a)
+
+
+def _series_noise_ok(series, nf: np.ndarray) -> bool:
+    """Whether 1 - g' from ``series`` (float64) is within NF_SERIES_TOL (relative) of the
+    exact noise factors ``nf`` at the table's points ``-pi + 2 pi j / M``."""
+    da, db = _series_derivative(series)
+    d = series[3]
+    m = nf.size
+    grid = -np.pi + TWO_PI * np.arange(m) / m
+    z = np.exp(1j * d * grid)
+    w = np.ones(m, dtype=complex)
+    deriv = np.zeros(m)
+    for t in range(len(da)):
+        w *= z
+        deriv += da[t] * w.real + db[t] * w.imag
+    return bool(np.max(np.abs((1.0 - deriv) / nf - 1.0)) <= NF_SERIES_TOL)
 
 
 _EXACT_WEIGHTS = (0.0, 0.5, -0.5, 1.0, -1.0)
@@ -197,11 +240,16 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     ser_d = np.ones(n_lev, dtype=np.int64)
     ser_n = np.ones(n_lev, dtype=np.int64)
     has_series = np.zeros(n_lev, dtype=np.bool_)
+    ser_da = np.zeros((n_lev, n_ser), dtype=np.float32)
+    ser_db = np.zeros((n_lev, n_ser), dtype=np.float32)
+    nf_series = np.zeros(n_lev, dtype=np.bool_)
     for i, s in enumerate(series):
         if s is not None:
-            a, b, c0, d = s
+            a, b, c0, d, nf_ok = s
             ser_a[i, :a.size], ser_b[i, :b.size] = a, b
             ser_c0[i], ser_d[i], ser_n[i], has_series[i] = c0, d, a.size, True
+            ser_da[i, :a.size], ser_db[i, :b.size] = _series_derivative(s)
+            nf_series[i] = nf_ok
     nst = np.asarray(steps, dtype=np.int64)
     # thresholds on S^2 + C^2 (float32 in the kernel): the smallest float32 >= the exact
     # value, so that m2 >= thr32 exactly when m2 >= thr
@@ -232,6 +280,7 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
         np.asarray(periods, dtype=np.float64), float(length), tables,
         np.asarray(use, dtype=np.bool_) & ~has_series, nf_tables,
         np.asarray(use, dtype=np.bool_), ser_a, ser_b, ser_c0, ser_d, ser_n, has_series,
+        ser_da, ser_db, nf_series,
         float(max_value), min_mod2,
         float(max_residual), bool(full), float(noise.read_noise ** 2 + noise.quantization ** 2),
         float(noise.gain), int(block_rows), int(min(tile, max(shape[1], 1))),

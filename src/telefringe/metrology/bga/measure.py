@@ -302,13 +302,16 @@ def _centres_and_apexes(cloud, seg, image, cands, caps, cov_theta, cap_model):
 def _unseen_positions(cloud, seg, T, pitch, theta, origin_local, rows, cols, D):
     """Grid positions with valid points on fewer than a quarter of a ball's footprint
     within D / 2 of their nominal place (on the substrate plane)."""
-    pts = cloud.xyz[cloud.mask] @ T.T
-    f = _grid_local(pts, theta, origin_local) / pitch
-    k = np.round(f).astype(np.int64)
-    near = np.all((k >= 0) & (k < (cols, rows)), axis=1) & (
-        np.hypot(*(f - k).T) * pitch < D / 2)
-    counts = np.bincount(k[near, 1] * cols + k[near, 0],
-                         minlength=rows * cols).reshape(rows, cols)
+    from telefringe.metrology.bga._kernels import footprint_counts
+
+    # (one compiled pass over the cloud: as _grid_local(xyz[mask] @ T.T, ...) / pitch,
+    # rounded, within D / 2 of the position)
+    counts = footprint_counts(np.ascontiguousarray(cloud.xyz, dtype=np.float64),
+                              np.ascontiguousarray(cloud.mask),
+                              np.ascontiguousarray(T, dtype=np.float64),
+                              float(np.cos(theta)), float(np.sin(theta)),
+                              np.asarray(origin_local, dtype=np.float64), float(pitch),
+                              int(rows), int(cols), float(D) / 2)
     need = max(0.25 * seg.footprint_px, 1.0)
     return [(int(i), int(j)) for i, j in np.argwhere(counts < need)], counts
 

@@ -79,9 +79,9 @@ def _brightness_gradient_terms(cloud: PointCloud, image: np.ndarray, projector,
     xyz = np.where(cloud.mask[..., None], cloud.xyz, np.nan)
     with np.errstate(divide="ignore", invalid="ignore"):
         ln_i = np.log(np.where(image > 0, image, np.nan))
-    gi_v, gi_u = np.gradient(ln_i)
     B = np.zeros(cloud.shape + (3,))
     if projector is not None:
+        gi_v, gi_u = np.gradient(ln_i)
         up = np.asarray(projector.project(xyz)[0], dtype=np.float64)
         x0 = np.nanmedian(xyz.reshape(-1, 3), axis=0)
         du_dt = float((np.asarray(projector.project(x0 + 0.01 * d)[0])
@@ -90,6 +90,13 @@ def _brightness_gradient_terms(cloud: PointCloud, image: np.ndarray, projector,
         B[..., 0] = (gi_u * gu_u + gi_v * gu_v) / du_dt / px_mm**2
         return B, True
     t = xyz @ d
+    if min(t.shape) >= 2:  # (one compiled pass, the same arithmetic as below)
+        from telefringe.metrology.bga._kernels import gradient_terms
+
+        gradient_terms(np.ascontiguousarray(ln_i), np.ascontiguousarray(t),
+                       float(px_mm**2), B)
+        return B, False
+    gi_v, gi_u = np.gradient(ln_i)
     gt_v, gt_u = np.gradient(t)
     B[..., 0] = (gi_u * gt_u + gi_v * gt_v) / px_mm**2
     B[..., 1] = gi_u
@@ -186,16 +193,17 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
                 if np.count_nonzero(keep) < 10:
                     why = "too_few_points_facing_camera"
                 else:
-                    item = (pts[keep], sig[keep], bg[keep], f0.centre)
+                    pts, sig, bg = pts[keep], sig[keep], bg[keep]
+                    # (theta-independent: computed once, not in every round)
+                    cos_t, g = _smoothing_shape(pts, f0.centre, r, view)
+                    R = np.column_stack([g + bg[:, 0], bg[:, 1], bg[:, 2]])[:, :npar]
+                    item = (pts, f0.centre, R, 1.0 / (sig * cos_t) ** 2)
         sel.append(item)
         reasons.append(why)
 
     def fit_one(item, theta):
-        pts, sig, bg, c = item
-        cos_t, g = _smoothing_shape(pts, c, r, view)
-        R = np.column_stack([g + bg[:, 0], bg[:, 1], bg[:, 2]])[:, :npar]
+        pts, c, R, w = item
         q = pts + np.outer(R @ theta, view)  # moved up, toward the camera
-        w = 1.0 / (sig * cos_t) ** 2
         f = fit_sphere(q, weights=w, robust=True, radius=r, start=c)
         m = f.inliers
         res, J, K = _cap_residuals(pts[m], R[m], f.centre, theta, r, view)
