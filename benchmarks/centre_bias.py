@@ -101,7 +101,9 @@ def main(argv=None) -> int:
             continue
         for corr in (False, True):
             kw = dict(kwargs)
-            if not corr:
+            if corr:
+                kw["centre_bias"] = "full"
+            else:
                 kw["marker_radius"] = None
             t0 = time.process_time()
             cal = calibrate_devices(*args, **kw)
