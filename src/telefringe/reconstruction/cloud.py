@@ -241,3 +241,49 @@ class PointCloud:
             sigma_line = np.where(mask, sz / np.abs(d[..., 2]), np.nan)
         flags = np.where(mask, 0, FLAG_NO_PHASE).astype(np.uint8)
         return cls._adopt(xyz, mask, sigma_line, None, flags, d)
+
+
+@dataclass(frozen=True)
+class PixelCoords:
+    """Projector coordinates of a list of camera pixels, as one (1, n) row (what the
+    triangulators' ``triangulate`` reads like a decoded scan's coordinates)."""
+
+    u_p: np.ndarray | None
+    v_p: np.ndarray | None
+    mask: np.ndarray | None
+    sigma_u_p: np.ndarray | None
+    sigma_v_p: np.ndarray | None
+
+
+def pixel_rows(u_c, v_c, u_p, v_p=None, sigma_u_p=None, sigma_v_p=None):
+    """Camera pixels and their projector coordinates as (1, n) rows.
+
+    Parameters
+    ----------
+    u_c, v_c : (n,) array_like of float, camera pixel (column, row), px.
+    u_p, v_p, sigma_u_p, sigma_v_p : (n,) array_like of float or None, projector px.
+
+    Returns
+    -------
+    u_c, v_c : (1, n) ndarray of float64
+    coords : PixelCoords with (1, n) rows (None where not given).
+
+    Raises
+    ------
+    TriangulationError
+        When the arrays differ in length.
+    """
+    u_c = np.atleast_1d(np.asarray(u_c, dtype=np.float64)).reshape(1, -1)
+    v_c = np.atleast_1d(np.asarray(v_c, dtype=np.float64)).reshape(1, -1)
+    if u_c.shape != v_c.shape:
+        raise TriangulationError("u_c and v_c must have the same length")
+
+    def row(x):
+        if x is None:
+            return None
+        x = np.atleast_1d(np.asarray(x, dtype=np.float64)).reshape(1, -1)
+        if x.shape != u_c.shape:
+            raise TriangulationError("all per-point arrays must have the same length")
+        return x
+
+    return u_c, v_c, PixelCoords(row(u_p), row(v_p), None, row(sigma_u_p), row(sigma_v_p))

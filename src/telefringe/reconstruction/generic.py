@@ -63,6 +63,7 @@ from telefringe.reconstruction.cloud import (
     PointCloud,
     TriangulationError,
     _readonly,
+    pixel_rows,
 )
 
 __all__ = ["GenericTriangulator", "triangulate", "triangulate_pixels", "safe_backproject",
@@ -677,15 +678,6 @@ def triangulate(rig, coords, *, max_residual: float | None = 1.0,
                            use_v_p=use_v_p, check_bounds=check_bounds, compiled=compiled)
 
 
-@dataclass(frozen=True)
-class _Coords:
-    u_p: np.ndarray | None
-    v_p: np.ndarray | None
-    mask: np.ndarray | None
-    sigma_u_p: np.ndarray | None
-    sigma_v_p: np.ndarray | None
-
-
 def triangulate_pixels(rig, u_c, v_c, u_p, v_p=None, *, sigma_u_p=None, sigma_v_p=None,
                        max_residual: float | None = None, compiled: bool = True) -> PointCloud:
     """Triangulate arbitrary (sub-pixel) camera pixels, e.g. marker centres.
@@ -706,20 +698,7 @@ def triangulate_pixels(rig, u_c, v_c, u_p, v_p=None, *, sigma_u_p=None, sigma_v_
         With ``shape == (1, n)``; ``cloud.xyz[0]`` is the (n, 3) array of points (mm).
         No projector bounds are checked.
     """
-    u_c = np.atleast_1d(np.asarray(u_c, dtype=np.float64)).reshape(1, -1)
-    v_c = np.atleast_1d(np.asarray(v_c, dtype=np.float64)).reshape(1, -1)
-    if u_c.shape != v_c.shape:
-        raise TriangulationError("u_c and v_c must have the same length")
-
-    def row(x):
-        if x is None:
-            return None
-        x = np.atleast_1d(np.asarray(x, dtype=np.float64)).reshape(1, -1)
-        if x.shape != u_c.shape:
-            raise TriangulationError("all per-point arrays must have the same length")
-        return x
-
+    u_c, v_c, c = pixel_rows(u_c, v_c, u_p, v_p, sigma_u_p, sigma_v_p)
     tri = GenericTriangulator.for_pixels(rig, u_c, v_c)
-    c = _Coords(row(u_p), row(v_p), None, row(sigma_u_p), row(sigma_v_p))
     return tri.triangulate(c, max_residual=max_residual, check_bounds=False,
                            compiled=compiled)
