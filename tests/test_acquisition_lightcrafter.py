@@ -145,8 +145,8 @@ class _Window:
 
 
 def test_lightcrafter_packs_three_patterns_into_one_hdmi_frame():
-    lc = pytest.importorskip("telefringe.acquisition.drivers.lightcrafter",
-                             reason="hidapi is not installed (pip install -e '.[test]')")
+    pytest.importorskip("hid", reason="hidapi is not installed (pip install -e '.[test]')")
+    from telefringe.acquisition.drivers import lightcrafter as lc
     emu = d.Dlpc350Emulator()
     win = _Window()
     rng = np.random.default_rng(1)

@@ -12,12 +12,14 @@ import numpy as np
 import pytest
 
 os.environ.setdefault("PYLON_CAMEMU", "1")
-drv = pytest.importorskip("telefringe.acquisition.drivers.pylon",
-                          reason="pypylon is not installed (optional: pip install "
-                          "'telefringe[pylon]', about 90 MB)")
+with __import__("warnings").catch_warnings():  # pypylon's SWIG types warn on import
+    __import__("warnings").simplefilter("ignore", DeprecationWarning)
+    pytest.importorskip("pypylon", reason="pypylon is not installed (optional: pip install "
+                        "'telefringe[pylon]', about 90 MB)")
 
 import cv2  # noqa: E402
 
+import telefringe.acquisition.drivers.pylon as drv  # noqa: E402
 from telefringe.acquisition.base import FrameStatus, Trigger, open_camera  # noqa: E402
 from telefringe.fringes.patterns import pattern_groups, pattern_stack  # noqa: E402
 from telefringe.fringes.phase import wrapped_phase  # noqa: E402
