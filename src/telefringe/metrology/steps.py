@@ -25,6 +25,8 @@ class StepMeasurement:
     rms : (k,) mm, RMS residual of each level.   n_points : (k,) int.
     centroids : (k, 3) mm.
     labels : (rows, cols) int, level of each pixel (-1: unused).
+    edge_px : float, pixels: the margin kept from walls and other levels (see
+        :func:`measure_steps`).
     uncertainty : dict of str -> Uncertainty, or None: ``"heights"``, ``"step_heights"``
         with the noise and calibration parts (set by
         :func:`telefringe.metrology.uncertainty.steps_uncertainty`; None until then).
@@ -41,6 +43,7 @@ class StepMeasurement:
     centroids: np.ndarray
     labels: np.ndarray
     uncertainty: dict | None = None
+    edge_px: float = float("nan")
 
     def __post_init__(self):
         _freeze(self, "normal", "offsets", "heights", "sigma_heights", "step_heights",
@@ -138,62 +141,207 @@ def _dominant_normal(cloud: PointCloud) -> np.ndarray:
     return n / np.linalg.norm(n)
 
 
+#: Largest bias of a kept point from light of a neighbouring level, as a share of its own
+#: noise sigma (sets the margin kept from every wall; see :func:`measure_steps`).
+EDGE_BIAS_SHARE = 0.1
+
+
+def _footprint_tail(x, psf_px: float) -> np.ndarray:
+    """Share of a pixel's footprint (its unit square blurred by a Gaussian of ``psf_px``
+    pixels sigma) beyond a straight edge ``x`` pixels from its centre: (n,) for (n,) x."""
+    from scipy.special import ndtr
+
+    x = np.atleast_1d(np.asarray(x, dtype=np.float64))
+    if psf_px <= 0:
+        return np.clip(0.5 - x, 0.0, 1.0)
+    t = (np.arange(64) + 0.5) / 64 - 0.5  # midpoint rule across the pixel
+    return np.mean(ndtr(-(x[:, None] + t[None, :]) / psf_px), axis=1)
+
+
+def edge_margin_px(step_mm: float, sigma_mm: float, psf_px: float) -> float:
+    """Smallest distance (pixels, between pixel centres) from the nearest pixel of another
+    level at which a pixel's bias from that level's light is at most
+    :data:`EDGE_BIAS_SHARE` of its noise.
+
+    A pixel ``D`` pixels from a foreign one is at least ``D - 1`` pixels from the wall
+    between them (the foreign pixel may hold just over half of the other level's light);
+    the share of its footprint beyond the wall, times the height difference ``step_mm``,
+    bounds its bias (a mixed pixel's height lies between the levels' for a small share).
+
+    >>> round(edge_margin_px(2.0, 0.008, 0.5), 2)  # 2 mm steps, 8 um noise, focused camera
+    2.9
+    """
+    if not (step_mm > 0 and sigma_mm > 0):
+        return 1.0
+    limit = EDGE_BIAS_SHARE * sigma_mm / step_mm
+    d = np.arange(1.0, 64.0, 0.01)
+    ok = _footprint_tail(d - 1.0, psf_px) <= limit
+    return float(d[np.argmax(ok)]) if ok.any() else float(d[-1])
+
+
+def _assign(h_img, mask, offsets, s_img, k_band, floor):
+    """Nearest level of every valid pixel and whether its height lies within ``k_band``
+    of its own noise scale of that level's plane.
+
+    Returns (nearest (rows, cols) int, -1 invalid; r (rows, cols) residual to the nearest
+    plane, mm; in_band (rows, cols) bool; scale (k,) the factor on ``s_img`` per level:
+    the robust spread of the residuals in units of ``s_img``, at least ``floor``).
+    """
+    hv = np.where(mask, h_img, 0.0)
+    dist = np.abs(hv[..., None] - offsets[None, None, :])
+    nearest = np.where(mask, np.argmin(dist, axis=-1), -1)
+    r = np.where(mask, hv - offsets[np.maximum(nearest, 0)], np.nan)
+    K = offsets.size
+    scale = np.ones(K)
+    # per level: the noise model scaled up where the residuals say it is too optimistic
+    for k in range(K):
+        z = np.abs(r[nearest == k] / s_img[nearest == k])
+        z = z[np.isfinite(z)]
+        if z.size:
+            scale[k] = max(floor, _MAD * float(np.median(z)), 1e-12)
+    band = k_band * s_img * scale[np.maximum(nearest, 0)]
+    in_band = mask & (np.abs(r) <= band)
+    return nearest, r, in_band, scale
+
+
+def _structure(nearest, in_band, mask):
+    """Level of each pixel for the wall geometry: its nearest level where it lies within
+    its band, or where it is a lone outlier among 8 in-band neighbours of its own level
+    (noise, not a wall: it must not carve a hole); -1 elsewhere (walls, mixed pixels,
+    invalid pixels)."""
+    out = np.where(in_band, nearest, -1)
+    lone = mask & ~in_band
+    if lone.any():
+        pad = np.pad(out, 1, constant_values=-1)
+        same = np.zeros(out.shape, dtype=np.int64)
+        rows, cols = out.shape
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if dr or dc:
+                    same += pad[1 + dr:1 + dr + rows, 1 + dc:1 + dc + cols] == nearest
+        lone &= same == 8
+        out = np.where(lone, nearest, out)
+    return out
+
+
 def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int = 200,
-                  edge_px: int = 2) -> StepMeasurement:
+                  psf_px: float = 0.5, edge_px: float | None = None,
+                  k_band: float = 4.0) -> StepMeasurement:
     """Heights of the flat levels of a step gauge (parallel planes fitted jointly).
 
     The median normal of the surface gives a first orientation; heights along it are
-    histogrammed and
-    every peak holding at least ``min_points`` points, ``min_step`` (mm) or more from a
-    taller one, is a level. Pixels within ``min_step / 3`` of a level, with their region
-    shrunk by ``edge_px`` pixels (edges mix levels), are fitted as parallel planes with
-    one common normal (Gauss-Newton, twice with re-assignment, 4-sigma rejection).
+    histogrammed and every peak holding at least ``min_points`` points, ``min_step``
+    (mm) or more from a taller one, starts a level. Then, until the points stop
+    changing: every valid pixel goes to its nearest level's plane; it is kept if its
+    distance to it is within ``k_band`` of its own noise along the normal (the cloud's
+    ``sigma_line`` times the cosine of its line with the normal; scaled up per level where
+    the residuals' robust spread says the noise model is optimistic) and if it lies at
+    least ``edge_px`` pixels (Euclidean, between centres) from every pixel that is not
+    of its level (walls, mixed pixels, other levels, invalid pixels, the image border); all
+    levels are fitted as parallel planes with one common normal (Gauss-Newton). The
+    points are thus chosen by their distance to fitted planes, never to a histogram's
+    bins: a small change of the calibration moves them smoothly.
+
+    ``edge_px`` None: the margin at which a pixel's bias from the light of another level
+    (its footprint, the pixel blurred by a Gaussian of ``psf_px`` pixels, beyond the
+    wall, times the largest height difference of the levels) is at most a tenth of its
+    noise (:func:`edge_margin_px`); 0.5 px is a focused camera.
+
+    Parameters
+    ----------
+    cloud : PointCloud, any camera (per-pixel viewing directions are used).
+    min_step : float, mm, the smallest step to find.
+    min_points : int, fewest points of a level.
+    psf_px, edge_px, k_band : see above.
 
     Returns
     -------
-    StepMeasurement
+    StepMeasurement (``edge_px`` the margin used).
     """
     from scipy import ndimage
 
     if not (np.isfinite(min_step) and min_step > 0):
         raise MetrologyError("min_step must be > 0")
+    if not (np.isfinite(psf_px) and psf_px >= 0):
+        raise MetrologyError("psf_px must be >= 0")
+    if edge_px is not None and not (np.isfinite(edge_px) and edge_px >= 0):
+        raise MetrologyError("edge_px must be >= 0")
+    if not (np.isfinite(k_band) and k_band > 0):
+        raise MetrologyError("k_band must be > 0")
     pts = cloud.points()
     if pts.shape[0] < 2 * min_points:
         raise MetrologyError(f"the cloud has {pts.shape[0]} valid points: too few for steps")
-    n = _dominant_normal(cloud)
-    labels = np.full(cloud.shape, -1, dtype=np.int64)
     xyz = cloud.xyz
     mask = cloud.mask
-    for _ in range(2):
-        h_img = np.where(mask, xyz @ n, np.nan)
-        hv = h_img[mask]
-        bin_mm = min_step / 10.0
-        peaks = _level_peaks(hv, min_step=min_step, min_points=min_points, bin_mm=bin_mm)
-        if len(peaks) < 2:
+    # the start: levels as peaks of the heights' histogram along the surface's median
+    # normal (which the walls tilt a little), the normal refined once by a joint fit of
+    # the points near the peaks, the peaks found again along it
+    n = _dominant_normal(cloud)
+    for rough in (True, False):
+        h = xyz[mask] @ n
+        peaks = np.asarray(_level_peaks(h, min_step=min_step, min_points=min_points,
+                                        bin_mm=min_step / 10.0))
+        if peaks.size < 2:
             raise MetrologyError(
-                f"found {len(peaks)} level(s) of at least {min_points} points: no step")
-        labels[:] = -1
+                f"found {peaks.size} level(s) of at least {min_points} points: no step")
+        if rough:
+            near = [xyz[mask][np.abs(h - pk) < min_step / 3] for pk in peaks]
+            n = _joint_parallel_planes([p for p in near if p.shape[0] >= 3], n)[0]
+    offsets = peaks.astype(np.float64)
+    sig_line = np.asarray(cloud.sigma_line, dtype=np.float64)
+    has_sigma = bool(np.any(np.isfinite(sig_line[mask]) & (sig_line[mask] > 0)))
+    prev = None
+    margin = np.nan
+    for _ in range(12):
+        h_img = np.where(mask, xyz @ n, np.nan)
+        if has_sigma:
+            cosine = np.abs(np.asarray(cloud.directions) @ n)
+            s_img = sig_line * np.broadcast_to(cosine, mask.shape)
+            s_img = np.where(np.isfinite(s_img) & (s_img > 0), s_img,
+                             np.nanmedian(s_img[mask]))
+        else:
+            s_img = np.ones(mask.shape)  # the per-level robust scale replaces it
+        nearest, r, in_band, scale = _assign(h_img, mask, offsets, s_img, k_band,
+                                             1.0 if has_sigma else 0.0)
+        struct = _structure(nearest, in_band, mask)
+        if edge_px is None:
+            sig = float(np.median((s_img * scale[np.maximum(nearest, 0)])[in_band]))
+            margin = edge_margin_px(float(np.ptp(offsets)), sig, psf_px)
+        else:
+            margin = float(edge_px)
+        labels = np.full(mask.shape, -1, dtype=np.int64)
         pts_list = []
-        keep_peaks = []
-        for pk in peaks:
-            sel = mask & (np.abs(np.nan_to_num(h_img, nan=np.inf) - pk) < min_step / 3)
-            if edge_px > 0:
-                sel = ndimage.binary_erosion(sel, iterations=int(edge_px))
+        keep = []
+        for k in range(offsets.size):
+            own = struct == k
+            dist = ndimage.distance_transform_edt(np.pad(own, 1))[1:-1, 1:-1]
+            sel = own & in_band & (nearest == k) & (dist >= margin)
             if np.count_nonzero(sel) < min_points:
                 continue
-            p = xyz[sel]
-            # refine the level robustly: 4-sigma rejection around its median height
-            r = p @ n
-            med = np.median(r)
-            scale = _MAD * np.median(np.abs(r - med)) + 1e-12
-            good = np.abs(r - med) <= 4.0 * scale
-            sel_idx = np.argwhere(sel)[good]
-            labels[sel_idx[:, 0], sel_idx[:, 1]] = len(pts_list)
-            pts_list.append(p[good])
-            keep_peaks.append(pk)
+            labels[sel] = len(pts_list)
+            pts_list.append(xyz[sel])
+            keep.append(k)
         if len(pts_list) < 2:
             raise MetrologyError("fewer than 2 levels left after edge removal: no step")
-        n, offsets, res, cov = _joint_parallel_planes(pts_list, n)
+        n, fitted, res, cov = _joint_parallel_planes(pts_list, n)
+        offsets = fitted
+        if np.min(np.diff(np.sort(offsets))) < min_step:
+            # two starts on one level: keep the fuller one, assign again
+            order = np.argsort(offsets)
+            counts = np.array([p.shape[0] for p in pts_list])[order]
+            keep_o = [order[0]]
+            for a, b in zip(order[:-1], order[1:], strict=True):
+                if offsets[b] - offsets[keep_o[-1]] < min_step:
+                    if counts[list(order).index(b)] > counts[list(order).index(keep_o[-1])]:
+                        keep_o[-1] = b
+                else:
+                    keep_o.append(b)
+            offsets = offsets[np.sort(keep_o)]
+            prev = None
+            continue
+        if prev is not None and prev.shape == labels.shape and np.array_equal(prev, labels):
+            break
+        prev = labels
     order = np.argsort(offsets)
     offsets = offsets[order]
     K = len(offsets)
@@ -210,4 +358,5 @@ def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int 
     rms = np.array([float(np.sqrt(np.mean(res[k] ** 2))) for k in order])
     npts = np.array([pts_list[k].shape[0] for k in order], dtype=np.int64)
     cents = np.array([pts_list[k].mean(axis=0) for k in order])
-    return StepMeasurement(n, offsets, heights, sig_h, steps, sig_s, rms, npts, cents, labels)
+    return StepMeasurement(n, offsets, heights, sig_h, steps, sig_s, rms, npts, cents, labels,
+                           edge_px=float(margin))
