@@ -124,6 +124,52 @@ def _joint_parallel_planes(pts_list, n0: np.ndarray):
     return n, offsets, res, cov
 
 
+def _correlated_covariance(xyz, labels, n, offsets):
+    """Covariance (2 + K, 2 + K) of the joint fit's (tilts, offsets) when the residuals
+    are spatially correlated (a ripple of the phase, form), from their own
+    autocovariance.
+
+    The residual field is taken as stationary over the image: its autocovariance C(lag)
+    is estimated from the residuals of every kept pixel (all levels together; pairs at
+    each pixel lag, by FFT), and the fit's sandwich ``M^-1 (A^T C A) M^-1`` (A the
+    design matrix, M = A^T A) gives the parameters' covariance. With uncorrelated
+    residuals it is the usual ``s^2 M^-1``; a level's mean error from a structure wider
+    than a pixel (the level spans a few fringe periods) is what it adds.
+    ``labels`` (rows, cols) int, -1 unused; ``xyz`` (rows, cols, 3) mm.
+    """
+    from scipy import fft as sfft
+
+    sel = labels >= 0
+    rows_any = np.flatnonzero(sel.any(axis=1))
+    cols_any = np.flatnonzero(sel.any(axis=0))
+    box = (slice(rows_any[0], rows_any[-1] + 1), slice(cols_any[0], cols_any[-1] + 1))
+    sel = sel[box]
+    lab = labels[box]
+    p = np.where(sel[..., None], xyz[box], 0.0)
+    K = offsets.size
+    T = _tangent_basis(n)
+    q = p @ T.T
+    q = np.where(sel[..., None], q - q[sel].mean(axis=0), 0.0)  # centred: better conditioned
+    r = np.where(sel, p @ n - offsets[np.maximum(lab, 0)], 0.0)
+    shape = tuple(sfft.next_fast_len(2 * m, real=True) for m in sel.shape)
+    Fr = sfft.rfft2(r, shape)
+    Fw = sfft.rfft2(sel.astype(np.float64), shape)
+    num = sfft.irfft2(Fr * np.conj(Fr), shape)
+    cnt = np.rint(sfft.irfft2(Fw * np.conj(Fw), shape))
+    C = np.where(cnt > 0.5, num / np.maximum(cnt, 1.0), 0.0)
+    FC = sfft.rfft2(C)
+    cols = [q[..., 0], q[..., 1]] + [-(lab == k).astype(np.float64) for k in range(K)]
+    A = np.stack([c[sel] for c in cols], axis=1)
+    M = A.T @ A
+    B = np.zeros((2 + K, 2 + K))
+    for j, c in enumerate(cols):
+        conv = sfft.irfft2(sfft.rfft2(c, shape) * FC, shape)[:sel.shape[0], :sel.shape[1]]
+        B[:, j] = A.T @ conv[sel]
+    B = 0.5 * (B + B.T)
+    Mi = np.linalg.inv(M)
+    return Mi @ B @ Mi
+
+
 def _dominant_normal(cloud: PointCloud) -> np.ndarray:
     """Median of the normals of the cloud's pixel quads: the orientation shared by most
     of the surface (the levels of a step gauge; a plane fit would tilt along the
@@ -342,19 +388,25 @@ def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int 
         if prev is not None and prev.shape == labels.shape and np.array_equal(prev, labels):
             break
         prev = labels
+    cov_c = _correlated_covariance(xyz, labels, n, offsets)
     order = np.argsort(offsets)
     offsets = offsets[order]
     K = len(offsets)
     cov_d = cov[2:, 2:][np.ix_(order, order)]
+    cov_dc = cov_c[2:, 2:][np.ix_(order, order)]
     relabel = np.full(K + 1, -1, dtype=np.int64)
     relabel[order] = np.arange(K)
     labels = np.where(labels >= 0, relabel[labels], -1)
     heights = offsets - offsets[0]
-    sig_h = np.array([np.sqrt(max(cov_d[k, k] + cov_d[0, 0] - 2 * cov_d[k, 0], 0.0))
-                      for k in range(K)])
+
+    def var_diff(c, a, b):
+        return max(c[a, a] + c[b, b] - 2 * c[a, b], 0.0)
+
+    # the larger of the white-noise and the correlated-residual figures
+    sig_h = np.sqrt([max(var_diff(cov_d, k, 0), var_diff(cov_dc, k, 0)) for k in range(K)])
     steps = np.diff(offsets)
-    sig_s = np.array([np.sqrt(max(cov_d[k + 1, k + 1] + cov_d[k, k] - 2 * cov_d[k + 1, k],
-                                  0.0)) for k in range(K - 1)])
+    sig_s = np.sqrt([max(var_diff(cov_d, k + 1, k), var_diff(cov_dc, k + 1, k))
+                     for k in range(K - 1)])
     rms = np.array([float(np.sqrt(np.mean(res[k] ** 2))) for k in order])
     npts = np.array([pts_list[k].shape[0] for k in order], dtype=np.int64)
     cents = np.array([pts_list[k].mean(axis=0) for k in order])
