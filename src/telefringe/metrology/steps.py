@@ -220,7 +220,7 @@ def edge_margin_px(step_mm: float, sigma_mm: float, psf_px: float) -> float:
     if not (step_mm > 0 and sigma_mm > 0):
         return 1.0
     limit = EDGE_BIAS_SHARE * sigma_mm / step_mm
-    d = np.arange(1.0, 64.0, 0.01)
+    d = np.arange(1.0, 1.0 + 12.0 * psf_px + 2.0, 0.01)  # the tail is below 1e-30 at the end
     ok = _footprint_tail(d - 1.0, psf_px) <= limit
     return float(d[np.argmax(ok)]) if ok.any() else float(d[-1])
 
@@ -360,8 +360,15 @@ def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int 
         keep = []
         for k in range(offsets.size):
             own = struct == k
-            dist = ndimage.distance_transform_edt(np.pad(own, 1))[1:-1, 1:-1]
-            sel = own & in_band & (nearest == k) & (dist >= margin)
+            sel = own & in_band & (nearest == k)
+            if margin > 1.0 and own.any():
+                # the distance to the nearest pixel not of this level, within the level's
+                # bounding box (grown by one pixel, which is not of it)
+                rr = np.flatnonzero(own.any(axis=1))
+                cc = np.flatnonzero(own.any(axis=0))
+                box = (slice(rr[0], rr[-1] + 1), slice(cc[0], cc[-1] + 1))
+                dist = ndimage.distance_transform_edt(np.pad(own[box], 1))[1:-1, 1:-1]
+                sel[box] &= dist >= margin
             if np.count_nonzero(sel) < min_points:
                 continue
             labels[sel] = len(pts_list)
