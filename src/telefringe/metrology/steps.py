@@ -338,7 +338,8 @@ def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int 
     has_sigma = bool(np.any(np.isfinite(sig_line[mask]) & (sig_line[mask] > 0)))
     prev = None
     margin = np.nan
-    for _ in range(12):
+    merged = False
+    for _ in range(12 + offsets.size):  # each merge of two starts takes one pass
         h_img = np.where(mask, xyz @ n, np.nan)
         if has_sigma:
             cosine = np.abs(np.asarray(cloud.directions) @ n)
@@ -380,21 +381,24 @@ def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int 
         offsets = fitted
         if np.min(np.diff(np.sort(offsets))) < min_step:
             # two starts on one level: keep the fuller one, assign again
-            order = np.argsort(offsets)
-            counts = np.array([p.shape[0] for p in pts_list])[order]
-            keep_o = [order[0]]
-            for a, b in zip(order[:-1], order[1:], strict=True):
-                if offsets[b] - offsets[keep_o[-1]] < min_step:
-                    if counts[list(order).index(b)] > counts[list(order).index(keep_o[-1])]:
+            counts = np.array([p.shape[0] for p in pts_list])
+            keep_o = []
+            for b in np.argsort(offsets):
+                if keep_o and offsets[b] - offsets[keep_o[-1]] < min_step:
+                    if counts[b] > counts[keep_o[-1]]:
                         keep_o[-1] = b
                 else:
                     keep_o.append(b)
             offsets = offsets[np.sort(keep_o)]
             prev = None
+            merged = True
             continue
+        merged = False
         if prev is not None and prev.shape == labels.shape and np.array_equal(prev, labels):
             break
         prev = labels
+    if merged:
+        raise MetrologyError("the levels did not settle (their starts kept merging)")
     cov_c = _correlated_covariance(xyz, labels, n, offsets)
     order = np.argsort(offsets)
     offsets = offsets[order]
