@@ -19,9 +19,11 @@ class StepMeasurement:
     normal : (3,) common unit normal of the levels (toward the camera).
     offsets : (k,) mm, ``normal . x = offset`` of each level, ascending.
     heights : (k,) mm, each level's height above the lowest (``offsets - offsets[0]``).
-    sigma_heights : (k,) mm, standard uncertainty of ``heights`` (0 for the lowest).
+    sigma_heights : (k,) mm, standard uncertainty of ``heights`` from the residuals (0 for
+        the lowest): the larger of the white-noise figure and the one from the residuals'
+        spatial autocovariance (a phase ripple a level spans only a few periods of).
     step_heights : (k - 1,) mm, height of each level above the one below.
-    sigma_steps : (k - 1,) mm.
+    sigma_steps : (k - 1,) mm, the same for ``step_heights``.
     rms : (k,) mm, RMS residual of each level.   n_points : (k,) int.
     centroids : (k, 3) mm.
     labels : (rows, cols) int, level of each pixel (-1: unused).
@@ -287,6 +289,11 @@ def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int 
     levels are fitted as parallel planes with one common normal (Gauss-Newton). The
     points are thus chosen by their distance to fitted planes, never to a histogram's
     bins: a small change of the calibration moves them smoothly.
+
+    ``sigma_heights`` and ``sigma_steps`` come from the residuals: the fit's covariance
+    with their spatial autocovariance (:func:`_correlated_covariance`; a phase ripple is
+    correlated over a fringe period, and a level a few periods wide does not average it
+    away), never less than with uncorrelated residuals.
 
     ``edge_px`` None: the margin at which a pixel's bias from the light of another level
     (its footprint, the pixel blurred by a Gaussian of ``psf_px`` pixels, beyond the
