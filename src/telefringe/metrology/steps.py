@@ -132,11 +132,15 @@ def _correlated_covariance(xyz, labels, n, offsets):
     autocovariance.
 
     The residual field is taken as stationary over the image: its autocovariance C(lag)
-    is estimated from the residuals of every kept pixel (all levels together; pairs at
-    each pixel lag, by FFT), and the fit's sandwich ``M^-1 (A^T C A) M^-1`` (A the
-    design matrix, M = A^T A) gives the parameters' covariance. With uncorrelated
-    residuals it is the usual ``s^2 M^-1``; a level's mean error from a structure wider
-    than a pixel (the level spans a few fringe periods) is what it adds.
+    is estimated from the residuals of every kept pixel (all levels together, by FFT;
+    the sum over pairs at each pixel lag divided by the number of points: a positive
+    semi-definite estimate), tapered by a Bartlett window out to the narrowest level's
+    width (positive semi-definite too: Newey and West's long-run variance in two
+    dimensions), and the fit's sandwich ``M^-1 (A^T C A) M^-1`` (A the design matrix,
+    M = A^T A) gives the parameters' covariance. With uncorrelated residuals it is
+    close to the usual ``s^2 M^-1`` (0.91-1.01 of it on synthetic white noise); a level's
+    mean error from a structure wider than a pixel (the level spans a few fringe periods
+    of a ripple) is what it adds.
     ``labels`` (rows, cols) int, -1 unused; ``xyz`` (rows, cols, 3) mm.
     """
     from scipy import fft as sfft
@@ -155,10 +159,20 @@ def _correlated_covariance(xyz, labels, n, offsets):
     r = np.where(sel, p @ n - offsets[np.maximum(lab, 0)], 0.0)
     shape = tuple(sfft.next_fast_len(2 * m, real=True) for m in sel.shape)
     Fr = sfft.rfft2(r, shape)
-    Fw = sfft.rfft2(sel.astype(np.float64), shape)
     num = sfft.irfft2(Fr * np.conj(Fr), shape)
-    cnt = np.rint(sfft.irfft2(Fw * np.conj(Fw), shape))
-    C = np.where(cnt > 0.5, num / np.maximum(cnt, 1.0), 0.0)
+    # the residuals' autocovariance, the biased (positive semi-definite) estimate, with a
+    # Bartlett taper (also positive semi-definite: the long-run variance of Newey and West,
+    # in two dimensions) out to the narrowest level's width
+    widths = []
+    for k in range(K):
+        rr = np.flatnonzero((lab == k).any(axis=1))
+        cc = np.flatnonzero((lab == k).any(axis=0))
+        widths.append(min(rr[-1] - rr[0], cc[-1] - cc[0]) + 1)
+    L = float(max(min(widths), 4))
+    ly = np.minimum(np.arange(shape[0]), shape[0] - np.arange(shape[0]))
+    lx = np.minimum(np.arange(shape[1]), shape[1] - np.arange(shape[1]))
+    taper = np.clip(1 - ly / L, 0, None)[:, None] * np.clip(1 - lx / L, 0, None)[None, :]
+    C = num / float(np.count_nonzero(sel)) * taper
     FC = sfft.rfft2(C)
     cols = [q[..., 0], q[..., 1]] + [-(lab == k).astype(np.float64) for k in range(K)]
     A = np.stack([c[sel] for c in cols], axis=1)
