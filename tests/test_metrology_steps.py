@@ -141,3 +141,35 @@ def test_step_heights_smooth_in_the_calibration():
     assert np.all(np.abs(steps - A @ coef).max(axis=0) < 0.05 * sig)
     n_valid = np.count_nonzero(labels[4] >= 0)
     assert max(np.count_nonzero(lab != labels[4]) for lab in labels) < 1e-3 * n_valid
+
+
+def test_step_sigma_holds_a_ripple():
+    """A ripple across the levels (amplitude 3 um like the noise, period 1.3 mm on 3 mm
+    levels: each level's mean keeps part of a period) is spatially correlated: the
+    white-noise figure does not cover the steps' errors, the figure from the residuals'
+    autocovariance does (k = 2), and stays below the largest error such a ripple can
+    give a step (two levels' partial periods: 2 A P / (pi W)). With white noise alone
+    the two figures agree."""
+    from telefringe.metrology.steps import _joint_parallel_planes
+
+    shape = (200, 300)
+    x, y = camera_grid(shape, pixel=0.05, origin=(0.0, 10.0))
+    level = np.clip((x // 3.0).astype(int), 0, 4)
+    tops = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
+    A, P = 0.003, 1.3
+
+    def measure(z):
+        cloud = cloud_from(x, y, z, sigma=0.003, seed=9)
+        m = measure_steps(cloud)
+        lab = np.asarray(m.labels)
+        cov = _joint_parallel_planes([cloud.xyz[lab == k] for k in range(5)], m.normal)[3]
+        c = cov[2:, 2:]
+        white = np.sqrt([c[k + 1, k + 1] + c[k, k] - 2 * c[k + 1, k] for k in range(4)])
+        return m, m.step_heights - np.diff(tops), white
+
+    m, err, white = measure(tops[level])
+    assert np.all(m.sigma_steps <= 1.1 * white)
+    m, err, white = measure(tops[level] + A * np.sin(2 * np.pi * x / P + 0.3))
+    assert np.any(np.abs(err) > 3 * white)
+    assert np.all(np.abs(err) <= 2 * m.sigma_steps)
+    assert np.all(m.sigma_steps < 2 * A * P / (np.pi * (3.0 - 2 * m.edge_px * 0.05)))
