@@ -93,7 +93,7 @@ def held_out_scenes(vrig):
     from telefringe.simulate.experiments import bga_window, unbin_rig
     from telefringe.simulate.presets import HDR_EXPOSURES
     from telefringe.simulate.render import default_groups, render_scan
-    from telefringe.simulate.scenes import Sphere, default_bga, default_steps, plate_from_target
+    from telefringe.simulate.scenes import default_bga, default_steps, plate_from_target
 
     groups = default_groups(vrig)
     out = {}
@@ -108,10 +108,7 @@ def held_out_scenes(vrig):
     scan, _ = render_scan(vrig, steps, groups, seed=502)
     out["steps"] = dict(coords=decode(scan, **DECODE),
                         heights=np.concatenate([[0.0], np.asarray(steps.blocks)[:, 5]]))
-    sph = Sphere(center=np.array([15.0, 12.0, -1.0]), radius=2.5)
-    scan, _ = render_scan(vrig, sph, groups, seed=503)
-    out["sphere"] = dict(coords=decode(scan, **DECODE), centre=np.asarray(sph.center),
-                         radius=sph.radius)
+    out["sphere"] = sphere_scene(vrig)
     bga = default_bga(0, rows=10, cols=10, n_missing=2)
     fine = replace(vrig, rig=unbin_rig(vrig.rig, 4))
     col0, row0 = bga_window(fine, size=BGA_WINDOW)
@@ -121,6 +118,22 @@ def held_out_scenes(vrig):
     out["bga"] = dict(coords=decode(scan, **DECODE), radiance=scan_radiance(scan), bga=bga,
                       window=(col0, row0))
     return out
+
+
+def sphere_scene(vrig):
+    """The held-out sphere: decoded coordinates, the brightness (the fringes' mean level)
+    and the finest fringe periods, which the sphere's point-spread model needs."""
+    from telefringe.fringes.decode import decode
+    from telefringe.fringes.images import scan_radiance
+    from telefringe.metrology.spheres import finest_fringe_periods
+    from telefringe.simulate.render import default_groups, render_scan
+    from telefringe.simulate.scenes import Sphere
+
+    sph = Sphere(center=np.array([15.0, 12.0, -1.0]), radius=2.5)
+    scan, _ = render_scan(vrig, sph, default_groups(vrig), seed=503)
+    return dict(coords=decode(scan, **DECODE), centre=np.asarray(sph.center),
+                radius=sph.radius, radiance=scan_radiance(scan),
+                periods=finest_fringe_periods(scan.manifest))
 
 
 def measure_all(cal, scenes):
@@ -176,7 +189,8 @@ def measure_all(cal, scenes):
 
     s = scenes["sphere"]
     cloud = triangulate(cal.rig, s["coords"])
-    m = sphere_uncertainty(measure_sphere(cloud), cloud, cal)
+    m = sphere_uncertainty(measure_sphere(cloud, rig=cal.rig, image=s["radiance"],
+                                          fringe_periods=s["periods"]), cloud, cal)
     add("sphere radius", m.uncertainty["radius"], s["radius"])
     add("sphere centre", m.uncertainty["centre"], s["centre"])
 
@@ -272,6 +286,9 @@ def main(argv=None) -> int:
     scene_file = args.cache / "held_out_scenes.pickle"
     if scene_file.exists():
         scenes = pickle.loads(scene_file.read_bytes())
+        if "radiance" not in scenes["sphere"]:  # a cache from before the sphere's model
+            scenes["sphere"] = sphere_scene(vrig)
+            scene_file.write_bytes(pickle.dumps(scenes))
     else:
         scenes = held_out_scenes(vrig)
         scene_file.write_bytes(pickle.dumps(scenes))

@@ -303,7 +303,9 @@ def sphere_uncertainty(measurement, cloud, calibration, *, weight_v=None):
     ``"centre"`` ((3,) mm, world frame).
 
     The geometric fit is linearised at its solution over the points it used
-    (``measurement.fitted``).
+    (``measurement.fitted``); a fit through the camera's point-spread model
+    (``measurement.spread``) with its own design, the spread's variance a parameter when
+    it was estimated with the sphere.
     """
     wv = weight_v_of(cloud) if weight_v is None else weight_v
     L = _factor(calibration)
@@ -312,14 +314,28 @@ def sphere_uncertainty(measurement, cloud, calibration, *, weight_v=None):
     if fitted is None:
         raise MetrologyError("the sphere measurement does not record its points (measure "
                              "it again with this version)")
-    pts = cloud.xyz[np.asarray(fitted, dtype=bool) & cloud.mask]
+    sel = np.asarray(fitted, dtype=bool) & cloud.mask
+    pts = cloud.xyz[sel]
     f = m.sphere
-    d = pts - f.centre
-    r = np.linalg.norm(d, axis=1)
-    uvec = d / r[:, None]
-    a = np.column_stack([-uvec, -np.ones(pts.shape[0])])  # d residual / d (c, R)
+    spread = getattr(m, "spread", None)
+    if spread is None:
+        d = pts - f.centre
+        r = np.linalg.norm(d, axis=1)
+        uvec = d / r[:, None]
+        a = np.column_stack([-uvec, -np.ones(pts.shape[0])])  # d residual / d (c, R)
+    else:
+        # the fit through the point-spread model: its residuals' design, with the spread's
+        # variance a parameter when it was estimated (the points move the estimate too)
+        from telefringe.metrology.spheres import _spread_design
+
+        T = np.asarray(m.spread_terms)[sel]
+        dirs = cloud.directions
+        dv = np.broadcast_to(dirs, pts.shape) if dirs.ndim == 1 else dirs[sel]
+        x = np.array([*f.centre, f.radius, spread.variance_px2])
+        _, J, uvec = _spread_design(pts, dv, T[:, 0], T[:, 1], x, spread.estimated)
+        a = J
     Ninv = np.linalg.inv(a.T @ a)
-    G = -(a @ Ninv.T)[:, :, None] * uvec[:, None, :]  # (n, 4, 3)
+    G = (-(a @ Ninv.T)[:, :, None] * uvec[:, None, :])[:, :4]  # (n, 4, 3): (c, R)
     J = sum_point_jacobian(calibration, pts, G, weight_v=wv)
     u = np.sqrt(np.sum((J @ L) ** 2, axis=1))
     sc = np.sqrt(np.diag(f.covariance))

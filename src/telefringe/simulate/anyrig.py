@@ -226,6 +226,22 @@ def _plane_errors(cloud, plane: TiltedPlane):
     return e, cloud.sigma_line[m] * dn, m
 
 
+def _sphere_options(rig: Rig, scans: dict):
+    """measure_sphere's point-spread options for a rig (a function of the rig measuring):
+    a camera + projector rig fits through the model with the first camera's brightness
+    (the scan's mean level) and the scan's finest fringe periods; a two-camera rig (no
+    model there yet) fits the points as they are."""
+    from telefringe.fringes.images import scan_radiance
+    from telefringe.metrology.spheres import finest_fringe_periods
+
+    if len(rig.cameras) != 1 or rig.projector is None:
+        return lambda r: {}
+    scan = scans[rig.camera_names[0]]
+    image = scan_radiance(scan)
+    periods = finest_fringe_periods(scan.manifest)
+    return lambda r: {"rig": r, "image": image, "fringe_periods": periods}
+
+
 def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int = 8,
                n_cal: int = 24, scenes: tuple[str, ...] = ("plane", "steps", "sphere"),
                progress: Callable = _noop) -> AnyrigResult:
@@ -303,8 +319,9 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
         scans, _ = scan_scene(vrig, sph, seed=seed + 401)
         coords = _decode_all(scans, calib, noise)
         cloud = _triangulate(calib.rig, coords)
-        fit = measure_sphere(cloud).sphere
-        cal = [measure_sphere(_triangulate(r, coords)).sphere.radius for r in rigs]
+        kw = _sphere_options(calib.rig, scans)
+        fit = measure_sphere(cloud, **kw(calib.rig)).sphere
+        cal = [measure_sphere(_triangulate(r, coords), **kw(r)).sphere.radius for r in rigs]
         sz = float(np.nanmedian(cloud.sigma_line[cloud.mask]))
         sphere_fig = SceneFigures("sphere radius", float(fit.radius), float(sph.radius),
                                   float(np.sqrt(fit.covariance[3, 3])),
