@@ -202,6 +202,7 @@ class AnyrigResult:
         predicted per-pixel sigma (along the plane normal), on pixels valid in every
         repeat; n_mc : int.
     steps : list of SceneFigures (step heights); sphere : SceneFigures (radius) or None.
+    sphere_centre : list of SceneFigures, the sphere centre's x, y, z (world, mm).
     """
 
     rig: str
@@ -213,6 +214,7 @@ class AnyrigResult:
     steps: list = field(default_factory=list)
     sphere: SceneFigures | None = None
     mirror: str = ""
+    sphere_centre: list = field(default_factory=list)
 
 
 def _plane_errors(cloud, plane: TiltedPlane):
@@ -314,6 +316,7 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
                 float(np.std(cal[:, j], ddof=1)) if cal.shape[1] > j else float("nan"), sz))
         progress("steps", 1, 1)
     sphere_fig = None
+    centre_figs: list = []
     if "sphere" in scenes:
         sph = default_sphere()
         scans, _ = scan_scene(vrig, sph, seed=seed + 401)
@@ -321,12 +324,19 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
         cloud = _triangulate(calib.rig, coords)
         kw = _sphere_options(calib.rig, scans)
         fit = measure_sphere(cloud, **kw(calib.rig)).sphere
-        cal = [measure_sphere(_triangulate(r, coords), **kw(r)).sphere.radius for r in rigs]
+        cal = np.array([[*f.centre, f.radius] for f in
+                        (measure_sphere(_triangulate(r, coords), **kw(r)).sphere
+                         for r in rigs)])
         sz = float(np.nanmedian(cloud.sigma_line[cloud.mask]))
         sphere_fig = SceneFigures("sphere radius", float(fit.radius), float(sph.radius),
                                   float(np.sqrt(fit.covariance[3, 3])),
-                                  float(np.std(cal, ddof=1)), sz)
+                                  float(np.std(cal[:, 3], ddof=1)), sz)
+        centre_figs = [SceneFigures(f"sphere centre {ax}", float(fit.centre[k]),
+                                    float(sph.center[k]),
+                                    float(np.sqrt(fit.covariance[k, k])),
+                                    float(np.std(cal[:, k], ddof=1)), sz)
+                       for k, ax in enumerate("xyz")]
         progress("sphere", 1, 1)
     return AnyrigResult(rig=vrig.name, n_poses=n_poses, rms=rms, plane_bias=plane_fig,
                         sigma_ratio=float(emp / pred), n_mc=int(n_mc), steps=steps_figs,
-                        sphere=sphere_fig, mirror=calib.mirror)
+                        sphere=sphere_fig, mirror=calib.mirror, sphere_centre=centre_figs)
