@@ -194,12 +194,27 @@ def sphere_cmd(
 
     _check_outputs([json_path], force)
     cal = _load_calibration(rig)
-    cloud, _ = _load(out)
+    from telefringe.io.points_npz import load_points
+
+    pf = load_points(out)
+    cloud = pf.cloud
+    spread = _sphere_spread_options(out, cal, pf)
     try:
-        sm = measure_sphere(cloud, min_height=min_height)
+        sm = measure_sphere(cloud, min_height=min_height, **spread)
     except _metrology_errors() as exc:
         _fail(out, exc)
     sm = _with_calibration(out, sphere_uncertainty, sm, cloud, cal)
+    if sm.spread is not None:
+        sp = sm.spread
+        info(f"fitted through the camera's point-spread model: variance "
+             f"{sp.variance_px2:.3f} px^2"
+             + (f" +- {sp.sigma_variance_px2:.3f} (estimated with the sphere)"
+                if sp.estimated else " (given)")
+             + f", points facing the camera within {sp.max_view_deg:g} deg")
+    elif cal is not None:
+        info("[yellow]note:[/yellow] fitted without the point-spread model (it needs a "
+             "camera + projector rig, the same image size and the radiance in points.npz): "
+             "a blurring camera biases radius and centre by about s^2 / R")
     f, base = sm.sphere, sm.base
     if base is None:
         info("[yellow]warning:[/yellow] no base plane holds 20 % of the points: every point "
@@ -211,7 +226,35 @@ def sphere_cmd(
          f"{f.n_inliers} points")
     _report_uncertainty(sm.uncertainty, {"radius": "radius", "centre": "centre"})
     _save_json(json_path, sphere_summary(f, base, region=sm.region,
-                                         uncertainty=sm.uncertainty), force)
+                                         uncertainty=sm.uncertainty, spread=sm.spread), force)
+
+
+def _sphere_spread_options(out: Path, cal, pf) -> dict:
+    """measure_sphere's point-spread options from the rig, the folder's radiance and the
+    fringe periods of the scan its summary.json names (when still readable); {} where
+    the model cannot be used."""
+    if cal is None or pf.radiance is None:
+        return {}
+    rig = cal.rig
+    size = rig.camera.image_size
+    if (rig.projector is None or len(rig.cameras) != 1
+            or (size is not None and tuple(size) != (pf.cloud.shape[1], pf.cloud.shape[0]))):
+        return {}
+    periods = None
+    try:
+        import json
+
+        from telefringe.io.scan_json import load_scan_manifest
+        from telefringe.metrology.spheres import finest_fringe_periods
+
+        doc = json.loads((Path(out) / "summary.json").read_text())
+        scan_dir = Path(doc["scan"])
+        if not scan_dir.is_absolute():
+            scan_dir = Path(out) / scan_dir if not scan_dir.exists() else scan_dir
+        periods = finest_fringe_periods(load_scan_manifest(scan_dir))
+    except (OSError, ValueError, KeyError, TypeError):  # they refine the second order only
+        periods = None
+    return {"rig": rig, "image": pf.radiance, "fringe_periods": periods}
 
 
 def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,
