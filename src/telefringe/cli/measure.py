@@ -211,6 +211,10 @@ def sphere_cmd(
              + (f" +- {sp.sigma_variance_px2:.3f} (estimated with the sphere)"
                 if sp.estimated else " (given)")
              + f", points facing the camera within {sp.max_view_deg:g} deg")
+        if sp.estimated and sp.variance_px2 < -3.0 * sp.sigma_variance_px2:
+            info("[yellow]warning:[/yellow] the point-spread variance came out negative "
+                 "beyond 3 sigma: the model does not describe this sphere (not matte, not "
+                 "lit by the projector alone?); compare with a fit without --rig")
     elif cal is not None:
         info("[yellow]note:[/yellow] fitted without the point-spread model (it needs a "
              "camera + projector rig, the same image size and the radiance in points.npz): "
