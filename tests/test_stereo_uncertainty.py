@@ -135,3 +135,23 @@ def test_stereo_point_sigma_is_the_covariance_through_the_jacobian(stereo_case):
     J = point_jacobian(st, X0)
     expect = np.sqrt(np.einsum("nik,kl,nil->ni", J, cov, J))
     np.testing.assert_allclose(pu.calibration, expect, rtol=1e-9)
+
+
+def test_for_stereo_goes_where_a_calibration_goes(stereo_case):
+    """metrology.uncertainty takes the stereo calibration: a plane over stereo points
+    gets its calibration part through both cameras (its height moves with camera_2's
+    parameters, not with the projector's)."""
+    from telefringe.metrology._common import _tangent_basis
+    from telefringe.metrology.uncertainty import _factor, _plane_jacobian, for_stereo
+
+    rig, cal, c1, c2 = stereo_case
+    st = for_stereo(cal, c2)
+    assert len(st.maps) == 2 and len(for_stereo(cal, c2, use_v_p=False).maps) == 1
+    assert _factor(st).shape[0] == cal.parameters.size
+    m0 = match_stereo(rig, c1, c2)
+    pts = m0.cloud.xyz[m0.cloud.mask]
+    c = pts.mean(axis=0)
+    n = np.linalg.svd(pts - c)[2][2]
+    Jp = _plane_jacobian(st, pts, np.ones(len(pts)), n, c, _tangent_basis(n), 0.0)
+    k2 = len(rig.camera.param_names)
+    assert np.abs(Jp[2, k2:2 * k2]).max() > 0 and np.all(Jp[:, 2 * k2:] == 0)
