@@ -36,11 +36,11 @@ from telefringe.acquisition.base import (
     DeviceListing,
     Frame,
     FrameStatus,
-    NotSupported,
     Trigger,
 )
 from telefringe.acquisition.drivers import _arvlib as _a
 from telefringe.acquisition.drivers._ids import id_gap
+from telefringe.acquisition.drivers._settings import check_configure, full_roi
 
 __all__ = ["AravisCamera", "open_camera", "list_cameras", "id_gap"]
 
@@ -178,22 +178,15 @@ class AravisCamera:
         SOFTWARE, HARDWARE (on ``trigger_line``, default ``"Line0"``) or FREE_RUN.
         """
         self._require_open()
-        if self._started:
-            raise DeviceError("configure the camera before start(), not while acquiring")
-        if pixel_format not in PIXEL_FORMAT_MAX:
-            raise NotSupported(f"pixel format {pixel_format!r} is not supported; use one of "
-                               f"{', '.join(PIXEL_FORMAT_MAX)}")
-        if self.info.pixel_formats and pixel_format not in self.info.pixel_formats:
-            raise NotSupported(f"camera {self.info.model} offers "
-                               f"{', '.join(self.info.pixel_formats)}, not {pixel_format}")
+        check_configure(self.info, pixel_format, acquiring=self._started,
+                        unknown_formats_ok=True)
         if not (np.isfinite(exposure_s) and exposure_s > 0):
             raise ValueError(f"exposure_s must be a positive number of seconds, got "
                              f"{exposure_s!r}")
         cam = self._cam
         _a.call("arv_camera_set_acquisition_mode", cam, _ACQUISITION_CONTINUOUS)
         _a.call("arv_camera_set_pixel_format_from_string", cam, pixel_format.encode())
-        x, y, w, h = roi if roi is not None else (0, 0, self.info.width, self.info.height)
-        _a.call("arv_camera_set_region", cam, int(x), int(y), int(w), int(h))
+        _a.call("arv_camera_set_region", cam, *full_roi(roi, self.info))
         for fn in ("arv_camera_set_exposure_time_auto", "arv_camera_set_gain_auto"):
             try:
                 _a.call(fn, cam, _AUTO_OFF)

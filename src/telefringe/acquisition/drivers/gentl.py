@@ -38,6 +38,7 @@ from telefringe.acquisition.base import (
     NotSupported,
     Trigger,
 )
+from telefringe.acquisition.drivers._settings import check_configure
 
 __all__ = ["GentlCamera", "open_camera", "list_cameras", "producers"]
 
@@ -166,16 +167,8 @@ class GentlCamera:
         """Apply settings while stopped; return those read back (see the Camera protocol).
         A device without ExposureTime (or trigger control) can only FREE_RUN; its
         exposure is then reported as NaN (unknown)."""
-        if self._started:
-            raise DeviceError("configure the camera before start(), not while acquiring")
+        check_configure(self.info, pixel_format, acquiring=self._started)
         nm = self._nm
-        if pixel_format not in PIXEL_FORMAT_MAX:
-            raise NotSupported(f"pixel format {pixel_format!r} is not supported; use one of "
-                               f"{', '.join(PIXEL_FORMAT_MAX)}")
-        if pixel_format not in self.info.pixel_formats:
-            raise NotSupported(f"camera {self.info.model} offers "
-                               f"{', '.join(self.info.pixel_formats) or 'no monochrome format'}"
-                               f", not {pixel_format}")
         nm.PixelFormat.value = pixel_format
         if roi is not None:
             x, y, w, h = (int(v) for v in roi)

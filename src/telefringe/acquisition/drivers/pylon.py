@@ -37,6 +37,7 @@ from telefringe.acquisition.base import (
     Trigger,
 )
 from telefringe.acquisition.drivers._ids import id_gap
+from telefringe.acquisition.drivers._settings import check_configure, full_roi
 
 __all__ = ["PylonCamera", "open_camera", "list_cameras"]
 
@@ -108,22 +109,15 @@ class PylonCamera:
         Exposure through ``ExposureTime`` (or ``ExposureTimeAbs``), microseconds; gain
         through ``Gain`` in dB (a camera with raw gain units only accepts gain 0)."""
         c = self._cam
-        if c.IsGrabbing():
-            raise DeviceError("configure the camera before start(), not while acquiring")
-        if pixel_format not in PIXEL_FORMAT_MAX:
-            raise NotSupported(f"pixel format {pixel_format!r} is not supported; use one of "
-                               f"{', '.join(PIXEL_FORMAT_MAX)}")
-        if pixel_format not in self.info.pixel_formats:
-            raise NotSupported(f"camera {self.info.model} offers "
-                               f"{', '.join(self.info.pixel_formats)}, not {pixel_format}")
+        check_configure(self.info, pixel_format, acquiring=c.IsGrabbing())
         c.PixelFormat.Value = pixel_format
-        x, y, w, h = roi if roi is not None else (0, 0, self.info.width, self.info.height)
+        x, y, w, h = full_roi(roi, self.info)
         c.OffsetX.Value = 0
         c.OffsetY.Value = 0
-        c.Width.Value = int(w)
-        c.Height.Value = int(h)
-        c.OffsetX.Value = int(x)
-        c.OffsetY.Value = int(y)
+        c.Width.Value = w
+        c.Height.Value = h
+        c.OffsetX.Value = x
+        c.OffsetY.Value = y
         for auto in ("ExposureAuto", "GainAuto"):
             n = getattr(c, auto, None)
             if _avail(n) and genicam.IsWritable(n):
