@@ -45,6 +45,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from telefringe.geometry.interpolation import bilinear
+
 __all__ = [
     "StereoCalibration",
     "stereo_calibration",
@@ -287,25 +289,6 @@ def stereo_calibration(calibration, maps_2, *, sigmas_2=None) -> StereoCalibrati
     return StereoCalibration(calibration, tuple(m.copy() for m in maps), w)
 
 
-def _bilinear_gradient(M, u, v):
-    """Value and gradient (d/du, d/dv) of the bilinear interpolation of ``M`` (rows,
-    cols) at (u, v) (n,); NaN outside the image or where a corner is NaN."""
-    rows, cols = M.shape
-    with np.errstate(invalid="ignore"):
-        inside = (u >= 0) & (u <= cols - 1) & (v >= 0) & (v <= rows - 1)
-    uu = np.where(inside, u, 0.0)
-    vv = np.where(inside, v, 0.0)
-    j = np.minimum(np.floor(uu).astype(np.intp), cols - 2)
-    i = np.minimum(np.floor(vv).astype(np.intp), rows - 2)
-    fx, fy = uu - j, vv - i
-    m00, m01, m10, m11 = M[i, j], M[i, j + 1], M[i + 1, j], M[i + 1, j + 1]
-    val = (1 - fy) * ((1 - fx) * m00 + fx * m01) + fy * ((1 - fx) * m10 + fx * m11)
-    gu = (1 - fy) * (m01 - m00) + fy * (m11 - m10)
-    gv = (1 - fx) * (m10 - m00) + fx * (m11 - m01)
-    nan = ~inside
-    return (np.where(nan, np.nan, val), np.where(nan, np.nan, gu), np.where(nan, np.nan, gv))
-
-
 def _stereo_point_jacobian(stereo: StereoCalibration, xyz) -> np.ndarray:
     X = np.asarray(xyz, dtype=np.float64)
     if X.ndim != 2 or X.shape[1] != 3:
@@ -316,9 +299,9 @@ def _stereo_point_jacobian(stereo: StereoCalibration, xyz) -> np.ndarray:
     u2, v2 = cam2.project(X)
     metric = np.zeros((X.shape[0], 2, 2))
     for k, A in enumerate(stereo.maps):
-        _, gu, gv = _bilinear_gradient(A, u2, v2)
+        _, gu, gv, _ = bilinear(A, u2, v2)
         g = np.stack([gu, gv], axis=1)
-        w = 1.0 if stereo.weights is None else _bilinear_gradient(stereo.weights[k], u2, v2)[0]
+        w = 1.0 if stereo.weights is None else bilinear(stereo.weights[k], u2, v2)[0]
         metric += np.asarray(w)[..., None, None] * g[:, :, None] * g[:, None, :]
     bad = ~np.all(np.isfinite(metric), axis=(1, 2))
     if bad.any():
