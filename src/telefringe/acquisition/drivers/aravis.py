@@ -41,6 +41,7 @@ from telefringe.acquisition.base import (
 from telefringe.acquisition.drivers import _arvlib as _a
 from telefringe.acquisition.drivers._ids import id_gap
 from telefringe.acquisition.drivers._settings import check_configure, full_roi
+from telefringe.acquisition.drivers._trigger import SoftwareTriggerBook
 
 __all__ = ["AravisCamera", "open_camera", "list_cameras", "id_gap"]
 
@@ -101,7 +102,7 @@ def _str(b) -> str:
     return b.decode("utf-8", "replace") if b else ""
 
 
-class AravisCamera:
+class AravisCamera(SoftwareTriggerBook):
     """A GigE Vision / USB3 Vision camera through Aravis (the :class:`Camera` protocol).
 
     Parameters
@@ -155,10 +156,14 @@ class AravisCamera:
         return tuple(f for f in names if f in PIXEL_FORMAT_MAX)
 
     def _reset_counts(self) -> None:
-        self._owed = 0              # software triggers fired and not yet answered
-        self._last_id: int | None = None
+        super()._reset_counts()
         self._t_fire_ns = 0         # wall clock (ns) of the last trigger
-        self._desync = False
+
+    def _acquiring(self) -> bool:
+        return self._started
+
+    def _restart(self) -> None:
+        self._resync()
 
     def _require_open(self) -> None:
         if self._cam is None:
@@ -264,12 +269,8 @@ class AravisCamera:
 
     def fire(self) -> None:
         """Send a software trigger (no-op unless configured with Trigger.SOFTWARE)."""
-        if not self._started:
-            raise DeviceError("start() the camera before fire()")
-        if self.settings.trigger is not Trigger.SOFTWARE:
+        if not self._fire_ready():
             return
-        if self._desync:
-            self._resync()
         self._t_fire_ns = time.time_ns()    # Aravis stamps arrivals with the wall clock
         _a.call("arv_camera_software_trigger", self._cam)
         self._owed += 1
@@ -377,10 +378,7 @@ class AravisCamera:
                 break
             _a.lib.arv_stream_push_buffer(self._stream, buf)
             n += 1
-        if self._desync or self._owed:
-            self._resync()
-        self.discarded += n
-        return n
+        return self._flushed(n)
 
     def statistics(self) -> dict:
         """Aravis's stream counters: completed buffers, failures, underruns (since start)."""

@@ -39,6 +39,7 @@ from telefringe.acquisition.base import (
     Trigger,
 )
 from telefringe.acquisition.drivers._settings import check_configure
+from telefringe.acquisition.drivers._trigger import SoftwareTriggerBook
 
 __all__ = ["GentlCamera", "open_camera", "list_cameras", "producers"]
 
@@ -100,7 +101,7 @@ def _set(node, value) -> None:
         raise DeviceError(f"cannot set {name} to {value!r}: {exc}") from exc
 
 
-class GentlCamera:
+class GentlCamera(SoftwareTriggerBook):
     """A GenTL camera through harvesters (the :class:`Camera` protocol).
 
     Parameters
@@ -150,10 +151,8 @@ class GentlCamera:
         self._started = False
         self._reset_counts()
 
-    def _reset_counts(self) -> None:
-        self._owed = 0
-        self._last_id: int | None = None
-        self._desync = False
+    def _acquiring(self) -> bool:
+        return self._started
 
     @property
     def _nm(self):
@@ -244,12 +243,8 @@ class GentlCamera:
 
     def fire(self) -> None:
         """Software trigger (no-op unless configured with Trigger.SOFTWARE)."""
-        if not self._started:
-            raise DeviceError("start() the camera before fire()")
-        if self.settings.trigger is not Trigger.SOFTWARE:
+        if not self._fire_ready():
             return
-        if self._desync:
-            self._restart()
         self._nm.TriggerSoftware.execute()
         self._owed += 1
 
@@ -309,10 +304,7 @@ class GentlCamera:
                 break
             buf.queue()
             n += 1
-        if self._desync or self._owed:
-            self._restart()
-        self.discarded += n
-        return n
+        return self._flushed(n)
 
     def stop(self) -> None:
         if self._started:

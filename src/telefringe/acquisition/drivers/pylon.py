@@ -38,6 +38,7 @@ from telefringe.acquisition.base import (
 )
 from telefringe.acquisition.drivers._ids import id_gap
 from telefringe.acquisition.drivers._settings import check_configure, full_roi
+from telefringe.acquisition.drivers._trigger import SoftwareTriggerBook
 
 __all__ = ["PylonCamera", "open_camera", "list_cameras"]
 
@@ -59,7 +60,7 @@ def _avail(node) -> bool:
     return node is not None and genicam.IsAvailable(node)
 
 
-class PylonCamera:
+class PylonCamera(SoftwareTriggerBook):
     """A Basler camera through pypylon (the :class:`Camera` protocol)."""
 
     def __init__(self, serial: str = ""):
@@ -87,10 +88,8 @@ class PylonCamera:
         self._n_buffers = 8
         self._reset_counts()
 
-    def _reset_counts(self) -> None:
-        self._owed = 0
-        self._last_id: int | None = None
-        self._desync = False
+    def _acquiring(self) -> bool:
+        return bool(self._cam.IsGrabbing())
 
     def feature(self, name: str):
         """The GenICam node ``name`` of the camera (for features telefringe does not set,
@@ -176,12 +175,8 @@ class PylonCamera:
 
     def fire(self) -> None:
         """Software trigger (no-op unless configured with Trigger.SOFTWARE)."""
-        if not self._cam.IsGrabbing():
-            raise DeviceError("start() the camera before fire()")
-        if self.settings.trigger is not Trigger.SOFTWARE:
+        if not self._fire_ready():
             return
-        if self._desync:
-            self._restart()
         if not self._cam.WaitForFrameTriggerReady(1000, pylon.TimeoutHandling_Return):
             raise DeviceError("the camera did not become ready for a trigger within 1 s")
         self._cam.ExecuteSoftwareTrigger()
@@ -236,10 +231,7 @@ class PylonCamera:
                 break
             r.Release()
             n += 1
-        if self._desync or self._owed:
-            self._restart()
-        self.discarded += n
-        return n
+        return self._flushed(n)
 
     def stop(self) -> None:
         if self._cam is not None and self._cam.IsGrabbing():
