@@ -147,8 +147,11 @@ def point_jacobian(rig, xyz, *, weight_v=None) -> np.ndarray:
         return _stereo_point_jacobian(rig, xyz)
     inner = getattr(rig, "rig", rig)
     if len(getattr(inner, "cameras", ())) > 1:
-        raise ValueError("a rig with two cameras: give stereo_calibration(calibration, "
-                         "maps_2) for points matched between the cameras")
+        raise ValueError("a rig with two cameras: its points were matched between the "
+                         "cameras, and their calibration part needs the second camera's "
+                         "decoded coordinates (stereo_calibration / "
+                         "metrology.uncertainty.for_stereo), which a points file does not "
+                         "hold")
     cam, proj = _devices(rig)
     X = np.asarray(xyz, dtype=np.float64)
     if X.ndim != 2 or X.shape[1] != 3:
