@@ -125,7 +125,9 @@ def accept_cmd(
     the distances to the least-squares plane, same exclusion) on the plane, at each
     position, and their maxima; with --mpe, PASS / FAIL / UNDECIDED by ISO 14253-1 guard
     bands of the test's expanded uncertainty. The cap of every sphere seen is reported (a
-    single view sees a cap, which makes PS less certain). See docs/acceptance.md.
+    single view sees a cap, which makes PS less certain). A rig with two cameras reads
+    both cameras' scans of each position ("second" in acceptance.json) and matches them
+    as 'reconstruct --second' does. See docs/acceptance.md.
 
     Example: telefringe accept acc/acceptance --rig rig.json --artefacts acc/artefacts.json
 
