@@ -32,6 +32,9 @@ How (:func:`estimate_noise`):
    ``a >= q^2`` (q^2 = 1/12 for integer images) and ``b >= 0``. Its uncertainty: the
    covariance of (a, b) from the bins' standard errors and, in quadrature, the misfit
    (the pixel-weighted RMS relative deviation of the bins from the line).
+   The camera is the same for every group, so a group whose residuals exceed the quietest
+   group's by more than 10 % carries fringe shape the harmonic model did not follow (fine
+   fringes blurred unevenly across the field): it is left out (and named).
 
 :func:`resolve_noise` chooses the model the decoder uses (``"auto"``: a calibrated model in
 the scan's ``meta.camera_noise`` if present, else the scan's estimate where it can be
@@ -102,6 +105,9 @@ class NoiseEstimate:
     bounded : tuple of str, the parameters held at a bound (``"a"`` at q^2: the read noise
         is below what the data resolve; ``"b"`` at 0).
     subsampled : bool, a regular subsample of the pixels was read.
+    groups : tuple of (axis, periods, steps, exposure), the phase groups used.
+    excluded : tuple of the same, groups left out because their residuals exceed the
+        quietest group's by more than ``GROUP_EXCESS`` (fringe shape, not noise).
     """
 
     model: NoiseModel
@@ -117,6 +123,8 @@ class NoiseEstimate:
     bin_sigma: np.ndarray
     bounded: tuple[str, ...] = ()
     subsampled: bool = False
+    groups: tuple = ()
+    excluded: tuple = ()
 
     def variance(self, intensity) -> np.ndarray:
         """Predicted per-sample variance (DN^2) at ``intensity`` (DN), any shape."""
@@ -175,7 +183,9 @@ class NoiseChoice:
                 "intensity_range_dn": list(e.intensity_range),
                 "relative_u_sigma_at_median": float(e.relative_uncertainty(mid)),
                 "n_pixels": int(e.n_pixels), "dof": list(e.dof),
-                "bounded": list(e.bounded), "subsampled": bool(e.subsampled)})
+                "bounded": list(e.bounded), "subsampled": bool(e.subsampled),
+                "groups": [list(k) for k in e.groups],
+                "excluded_groups": [list(k) for k in e.excluded]})
         if self.note:
             out["note"] = self.note
         return out
@@ -482,21 +492,23 @@ def estimate_noise(scan: Scan, *, max_pixels: int | None = MAX_PIXELS,
     integer = all(s.dtype.kind in "ui" for _, s in usable)
     q2 = 1.0 / 12.0 if integer else 0.0
     edges = np.linspace(0.0, max_value, N_BINS + 1)
-    xs, ys, ss, ns, nall, dofs = [], [], [], [], [], []
+    rows = []  # per bin: group index, x, y, sigma_y, decodable pixels, pixels
     min_mod = 0.02 * max_value if min_modulation is None else float(min_modulation)
     n_used = n_sat = 0
-    for g, stack in usable:
+    npix_group, dofs = [], []
+    for gi, (g, stack) in enumerate(usable):
         flat = stack.reshape(stack.shape[0], -1)[:, idx]
         ok = (flat.max(axis=0) < max_value) & (flat.min(axis=0) > 0)
         if flat.dtype.kind == "f":
             ok &= np.all(np.isfinite(flat), axis=0)
         n_sat += int(np.sum(~ok))
+        npix_group.append(0)
+        dofs.append(int(g.steps) - 3)
         if ok.sum() < MIN_PER_BIN:
             continue
         r = step_residuals(flat[:, ok], steps=int(g.steps), offset=float(g.offset))
         nu = int(g.steps) - 3
-        n_used += r.sum_squares.size
-        dofs.append(nu)
+        npix_group[gi] = r.sum_squares.size
         A = r.background
         which = np.clip(np.searchsorted(edges, A, side="right") - 1, 0, N_BINS - 1)
         order = np.argsort(which, kind="stable")
@@ -506,33 +518,61 @@ def estimate_noise(scan: Scan, *, max_pixels: int | None = MAX_PIXELS,
             sel = order[starts[b]:starts[b + 1]]
             y, sy, x, _ = _clipped_mean(r.sum_squares[sel], r.dof_weight[sel],
                                         r.intensity_weight[sel], nu)
-            ns.append(int(np.count_nonzero(r.modulation[sel] >= min_mod)))
-            nall.append(sel.size)
-            xs.append(x)
-            ys.append(y)
-            ss.append(sy)
+            rows.append((gi, x, y, sy, int(np.count_nonzero(r.modulation[sel] >= min_mod)),
+                         sel.size))
+    n_used = sum(npix_group)
     if n_used < min_pixels:
         why = (f"{n_sat} of the pixels read are saturated or clipped at 0"
                if n_sat else "the image is too small")
         raise NoiseEstimateError(f"{scan.source}: {n_used} usable pixels, fewer than "
                                  f"{min_pixels}, to measure the camera's noise ({why})")
-    xs, ys, ss = map(np.asarray, (xs, ys, ss))
+    tab = np.asarray(rows, dtype=float)
+    gid, xs, ys, ss, ns, nall = tab.T
     if np.unique(np.round(xs / (max_value / N_BINS))).size < 2:
         raise NoiseEstimateError(f"{scan.source}: the lit pixels span too narrow an "
                                  "intensity range to fit read and shot noise")
-    ns = np.asarray(ns, dtype=float)
     if np.count_nonzero(ns) < 2:  # fewer than 2 bins of decodable pixels: all pixels
-        ns = np.asarray(nall, dtype=float)
-    a, b, cov, chi2_dof, misfit, bounded = _fit_line(xs, ys, ss, ns, q2)
+        ns = nall
+    keep = _consistent_groups(gid, xs, ys, ss, ns, q2)
+    sel = np.isin(gid, keep)
+    a, b, cov, chi2_dof, misfit, bounded = _fit_line(xs[sel], ys[sel], ss[sel], ns[sel], q2)
     q = float(np.sqrt(q2))
     model = NoiseModel(read_noise=float(np.sqrt(max(a - q2, 0.0))), gain=max(b, 0.0),
                        quantization=q)
-    order = np.argsort(xs)
+    order = np.argsort(xs[sel])
+    keys = [(g.axis, int(g.periods), int(g.steps), float(g.exposure)) for g, _ in usable]
     return NoiseEstimate(model=model, a=a, b=b, covariance=cov, chi2_dof=chi2_dof,
-                         misfit=misfit,
-                         n_pixels=int(n_used), dof=tuple(dofs), bin_intensity=xs[order],
-                         bin_variance=ys[order], bin_sigma=ss[order], bounded=bounded,
-                         subsampled=bool(idx.size < npx))
+                         misfit=misfit, n_pixels=int(sum(npix_group[i] for i in keep)),
+                         dof=tuple(dofs[i] for i in keep), bin_intensity=xs[sel][order],
+                         bin_variance=ys[sel][order], bin_sigma=ss[sel][order],
+                         bounded=bounded, subsampled=bool(idx.size < npx),
+                         groups=tuple(keys[i] for i in keep),
+                         excluded=tuple(keys[i] for i in range(len(usable))
+                                        if i not in keep and npix_group[i]))
+
+
+#: a group whose residuals say more than this much more variance (relative) than the
+#: quietest group's is left out: the camera is the same, so the excess is fringe shape
+#: the global harmonic model does not follow (fine fringes blurred unevenly across the
+#: field)
+GROUP_EXCESS = 0.10
+
+
+def _consistent_groups(gid, xs, ys, ss, ns, q2) -> list[int]:
+    """The groups whose noise level agrees with the quietest group's (see
+    GROUP_EXCESS): each group's pixel-weighted mean ratio of its bins to the line fitted
+    to all bins."""
+    groups = [int(g) for g in np.unique(gid)]
+    if len(groups) == 1:
+        return groups
+    a, b, *_ = _fit_line(xs, ys, ss, ns, q2)
+    ratio = ys / (a + b * xs)
+    level = {g: float(np.sum(ns[gid == g] * ratio[gid == g]) / max(np.sum(ns[gid == g]), 1))
+             for g in groups if np.sum(ns[gid == g]) > 0}
+    if not level:
+        return groups
+    low = min(level.values())
+    return [g for g in groups if g in level and level[g] <= low * (1.0 + GROUP_EXCESS)]
 
 
 # ----------------------------------------------------------------------------- choice
