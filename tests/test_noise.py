@@ -181,3 +181,53 @@ def test_a_12_bit_camera():
         # 12-bit steps of 16 stored DN: the true model's quantisation is 16^2 / 12
         tv = true.read_noise ** 2 + 16.0 ** 2 / 12 + true.gain * i
         assert abs(np.sqrt(e.variance(i) / tv) - 1) < 0.1, (i, e.variance(i), tv)
+
+
+def test_reconstruct_records_the_noise_model(tmp_path, capsys):
+    """`telefringe reconstruct` measures the noise from the scan by default and says so in
+    summary.json; --noise-model default and calibrated (scan.json meta.camera_noise) as
+    asked; a 3-step scan with --noise-model scan: one line, exit 2, nothing written."""
+    from telefringe.cli import main
+    from telefringe.io.rig_json import bare_rig_json
+    from telefringe.io.scan_json import write_scan
+    from telefringe.simulate.presets import crop_camera, get_preset
+    from telefringe.simulate.render import default_groups, render_scan
+    from telefringe.simulate.scenes import plate_at_z
+
+    vr = crop_camera(get_preset("fast"), col0=100, row0=80, width=120, height=100)
+    rig = tmp_path / "rig.json"
+    rig.write_text(json.dumps(bare_rig_json(vr.rig, reference_pose="truth")))
+    scan, _ = render_scan(vr, plate_at_z(0.0), default_groups(vr), seed=3)
+    write_scan(tmp_path / "scan", scan)
+    cal = Scan(scan.manifest, scan.stacks, scan.white, scan.black, scan.max_value,
+               meta={"camera_noise": {"read_noise_dn": 0.2, "gain_dn_per_dn": 0.02}})
+    write_scan(tmp_path / "cal", cal)
+    three, _ = render_scan(vr, plate_at_z(0.0), default_groups(vr, steps=3), seed=3)
+    write_scan(tmp_path / "three", three)
+    sigma = {}
+    for name, folder, opt in (("auto", "scan", "auto"), ("default", "scan", "default"),
+                              ("cal", "cal", "auto")):
+        out = tmp_path / f"out_{name}"
+        assert main(["reconstruct", str(tmp_path / folder), "--rig", str(rig), "-o",
+                     str(out), "--no-ply", "--noise-model", opt]) == 0
+        summary = json.loads((out / "summary.json").read_text())
+        sigma[name] = summary["sigma_z_median_mm"]
+        sigma[name + "_source"] = summary["noise_model"]["source"]
+    assert sigma["auto_source"] == "scan" and sigma["default_source"] == "default"
+    assert sigma["cal_source"] == "calibrated"
+    # the virtual camera's true noise is below the typical camera's (1.27x, see above)
+    assert sigma["auto"] < sigma["default"] / 1.1
+    assert "camera noise measured from the scan" in capsys.readouterr().out
+    assert main(["reconstruct", str(tmp_path / "three"), "--rig", str(rig), "-o",
+                 str(tmp_path / "o3"), "--noise-model", "scan", "--no-gamma-correction"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("error: ") and "3 steps" in err, err
+    assert not (tmp_path / "o3").exists()
+    assert main(["reconstruct", str(tmp_path / "three"), "--rig", str(rig), "-o",
+                 str(tmp_path / "o4"), "--no-gamma-correction"]) == 0  # auto: default, warned
+    assert "built-in typical camera" in capsys.readouterr().out
+    summary = json.loads((tmp_path / "o4" / "summary.json").read_text())
+    assert summary["noise_model"]["source"] == "default"
+    assert "3 steps" in summary["noise_model"]["note"]
+    assert main(["reconstruct", str(tmp_path / "scan"), "--rig", str(rig), "-o",
+                 str(tmp_path / "o5"), "--noise-model", "guess"]) == 2
