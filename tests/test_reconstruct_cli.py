@@ -146,10 +146,8 @@ def test_reconstruct_command(plate_out, tmp_path, capsys):
     tmp, out, rec, vr = plate_out
     rig_json = write_rig_json(tmp_path / "rig.json", vr.rig)
     out2 = tmp_path / "out2"
-    # the library's default noise model, as the fixture's reconstruct_scan (the command's
-    # own default measures it from the scan: tests/test_noise.py)
     assert main(["reconstruct", str(tmp / "scan"), "--rig", str(rig_json), "-o", str(out2),
-                 "--no-gamma-correction", "--no-ply", "--noise-model", "default"]) == 0
+                 "--no-gamma-correction", "--no-ply"]) == 0
     assert (out2 / "points.npz").exists() and not (out2 / "cloud.ply").exists()
     from telefringe.io.points_npz import read_points
 

@@ -66,7 +66,7 @@ __all__ = [
 #: what ``resolve_noise`` accepts as a string
 NOISE_SOURCES = ("auto", "scan", "calibrated", "default")
 #: pixels of a scan the estimate reads at most (over all its phase groups)
-MAX_PIXELS = 40_000
+MAX_PIXELS = 24_000
 #: fewest usable pixels for an estimate, and per intensity bin
 MIN_PIXELS = 2_000
 MIN_PER_BIN = 100
