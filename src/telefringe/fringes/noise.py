@@ -526,7 +526,11 @@ def estimate_noise(scan: Scan, *, max_pixels: int | None = MAX_PIXELS,
                if n_sat else "the image is too small")
         raise NoiseEstimateError(f"{scan.source}: {n_used} usable pixels, fewer than "
                                  f"{min_pixels}, to measure the camera's noise ({why})")
-    tab = np.asarray(rows, dtype=float)
+    tab = np.asarray(rows, dtype=float).reshape(-1, 6)
+    tab = tab[np.all(np.isfinite(tab), axis=1) & (tab[:, 2] > 0) & (tab[:, 3] > 0)]
+    if not len(tab):
+        raise NoiseEstimateError(f"{scan.source}: the phase steps show no noise (noise-free "
+                                 "synthetic images?): nothing to measure")
     gid, xs, ys, ss, ns, nall = tab.T
     if np.unique(np.round(xs / (max_value / N_BINS))).size < 2:
         raise NoiseEstimateError(f"{scan.source}: the lit pixels span too narrow an "
