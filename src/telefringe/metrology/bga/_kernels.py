@@ -70,3 +70,68 @@ def gradient_terms(ln_i, t, px2, out):
             out[r, j, 0] = (gi_u * gt_u + gi_v * gt_v) / px2
             out[r, j, 1] = gi_u
             out[r, j, 2] = gi_v
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def heights(xyz, mask, normal, offset, out):
+    """out = x . normal - offset per valid pixel (NaN where ``mask`` is False): the signed
+    height (mm) of each point above the plane. xyz : (h, w, 3) float64; mask : (h, w)
+    bool; normal : (3,); out : (h, w) float64."""
+    h, w = mask.shape
+    for r in range(h):
+        for j in range(w):
+            if mask[r, j]:
+                out[r, j] = (xyz[r, j, 0] * normal[0] + xyz[r, j, 1] * normal[1]
+                             + xyz[r, j, 2] * normal[2]) - offset
+            else:
+                out[r, j] = np.nan
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def row_steps(xyz):
+    """The finite distances (mm) in x and y between each point and its right-hand
+    neighbour, sqrt(dx^2 + dy^2) (as ``np.linalg.norm(np.diff(xyz[..., :2], axis=1),
+    axis=2)`` without its NaNs), in row order. xyz : (h, w, 3) float64."""
+    h, w, _ = xyz.shape
+    out = np.empty(h * max(w - 1, 0))
+    k = 0
+    for r in range(h):
+        for j in range(w - 1):
+            dx = xyz[r, j + 1, 0] - xyz[r, j, 0]
+            dy = xyz[r, j + 1, 1] - xyz[r, j, 1]
+            s = np.sqrt(dx * dx + dy * dy)
+            if np.isfinite(s):
+                out[k] = s
+                k += 1
+    return out[:k]
+
+
+@nb.njit(cache=True, nogil=True)
+def within_taxicab(mask, k):
+    """Pixels within city-block distance ``k`` (>= 1) of a True pixel of ``mask`` (h, w):
+    the same as ``scipy.ndimage.binary_dilation(mask, iterations=k)`` with its default
+    cross structure (k dilations by the 4-neighbourhood reach exactly the pixels within
+    city-block distance k, paths staying inside the image). Two raster passes of the
+    exact 4-neighbour distance transform. Returns (h, w) bool."""
+    h, w = mask.shape
+    big = h + w + 1
+    d = np.empty((h, w), dtype=np.int64)
+    for r in range(h):
+        for j in range(w):
+            v = 0 if mask[r, j] else big
+            if r > 0:
+                v = min(v, d[r - 1, j] + 1)
+            if j > 0:
+                v = min(v, d[r, j - 1] + 1)
+            d[r, j] = v
+    out = np.empty((h, w), dtype=np.bool_)
+    for r in range(h - 1, -1, -1):
+        for j in range(w - 1, -1, -1):
+            v = d[r, j]
+            if r < h - 1:
+                v = min(v, d[r + 1, j] + 1)
+            if j < w - 1:
+                v = min(v, d[r, j + 1] + 1)
+            d[r, j] = v
+            out[r, j] = v <= k
+    return out
