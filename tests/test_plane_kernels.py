@@ -135,3 +135,39 @@ def test_segmentation_kernels_match_numpy_and_scipy():
         above[0, 5] = above[59, 69] = True  # at the borders
         np.testing.assert_array_equal(within_taxicab(above, k),
                                       ndimage.binary_dilation(above, iterations=k))
+
+
+def test_log_and_depth_match_numpy():
+    from telefringe.metrology.bga._kernels import log_and_depth
+
+    rng = np.random.default_rng(4)
+    xyz = rng.normal(size=(20, 30, 3))
+    mask = rng.random((20, 30)) < 0.8
+    image = rng.uniform(-0.2, 2.0, (20, 30))
+    image[3, 4] = np.nan
+    d = np.array([0.05, -0.02, 1.0]) / np.linalg.norm([0.05, -0.02, 1.0])
+    dirs = rng.normal(size=(20, 30, 3))
+    for directions in (np.broadcast_to(d, (20, 30, 3)), dirs):
+        ln_i, t = np.empty((20, 30)), np.empty((20, 30))
+        log_and_depth(image, xyz, mask, directions, ln_i, t)
+        with np.errstate(invalid="ignore"):
+            ref_ln = np.log(np.where(image > 0, image, np.nan))
+        np.testing.assert_array_equal(np.isnan(ln_i), np.isnan(ref_ln))
+        np.testing.assert_allclose(ln_i, ref_ln, rtol=4.5e-16)  # (1 ulp: another log)
+        ref_t = np.where(mask, np.sum(xyz * directions, axis=2), np.nan)
+        np.testing.assert_allclose(t, ref_t, rtol=0, atol=1e-15)
+        np.testing.assert_array_equal(np.isnan(t), ~mask)
+
+
+def test_erosion_kernel_matches_scipy():
+    from telefringe.metrology.bga._kernels import eroded_taxicab
+
+    rng = np.random.default_rng(6)
+    for k in (1, 2, 3):
+        for shape in ((1, 1), (3, 7), (15, 12)):
+            m = ndimage.binary_dilation(rng.random(shape) < 0.3)
+            np.testing.assert_array_equal(eroded_taxicab(m, k),
+                                          ndimage.binary_erosion(m, iterations=k))
+        full = np.ones((6, 5), dtype=bool)  # the border counts as outside
+        np.testing.assert_array_equal(eroded_taxicab(full, k),
+                                      ndimage.binary_erosion(full, iterations=k))

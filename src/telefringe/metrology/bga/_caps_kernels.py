@@ -47,16 +47,18 @@ def _shape(p, c, r, view, rho2_max):
 
 
 @nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def prepare_caps(pts, sig, bg, off, view, r, rho2_max, cos_min, npar, reject_k, mad,
-                 out_pts, out_R, out_w, counts, c0, status):
+def prepare_caps(pts, sig, bg, view, off, r, rho2_max, cos_min, npar, reject_k, mad,
+                 out_pts, out_R, out_w, out_view, counts, c0, status):
     """Per ball: drop points with a non-finite coordinate, sigma or gradient term (or
     sigma <= 0); a robust sphere of radius ``r`` (unit weights) gives each point's
     surface tilt; the points facing the camera (cos tilt >= ``cos_min``) are kept, with
     their regressors R = (g + B0, B1, B2)[:npar] and weights 1 / (sigma cos tilt)^2.
 
-    pts (N, 3), sig (N,), bg (N, 3); off (n_balls + 1,) int64. Outputs, ball k in rows
-    off[k]:off[k] + counts[k]: out_pts (N, 3), out_R (N, npar), out_w (N,); c0 (n_balls,
-    3) the start centres; status (n_balls,) int64 (see the module).
+    pts (N, 3), sig (N,), bg (N, 3), view (N, 3) each point's unit vector toward the
+    camera (one for all with a telecentric camera, each pixel's own with a pinhole);
+    off (n_balls + 1,) int64. Outputs, ball k in rows off[k]:off[k] + counts[k]:
+    out_pts (N, 3), out_R (N, npar), out_w (N,), out_view (N, 3); c0 (n_balls, 3) the
+    start centres; status (n_balls,) int64 (see the module).
     """
     for k in nb.prange(off.size - 1):
         a = off[k]
@@ -64,6 +66,7 @@ def prepare_caps(pts, sig, bg, off, view, r, rho2_max, cos_min, npar, reject_k, 
         p = np.empty((n, 3))
         s = np.empty(n)
         b = np.empty((n, 3))
+        vw = np.empty((n, 3))
         m = 0
         for i in range(a, a + n):
             good = np.isfinite(sig[i]) and sig[i] > 0.0
@@ -73,6 +76,7 @@ def prepare_caps(pts, sig, bg, off, view, r, rho2_max, cos_min, npar, reject_k, 
                 for j in range(3):
                     p[m, j] = pts[i, j]
                     b[m, j] = bg[i, j]
+                    vw[m, j] = view[i, j]
                 s[m] = sig[i]
                 m += 1
         counts[k] = 0
@@ -89,11 +93,12 @@ def prepare_caps(pts, sig, bg, off, view, r, rho2_max, cos_min, npar, reject_k, 
             continue
         q = 0
         for i in range(m):
-            cos_t, g = _shape(p[i], c, r, view, rho2_max)
+            cos_t, g = _shape(p[i], c, r, vw[i], rho2_max)
             if cos_t >= cos_min:
                 row = a + q
                 for j in range(3):
                     out_pts[row, j] = p[i, j]
+                    out_view[row, j] = vw[i, j]
                 out_R[row, 0] = g + b[i, 0]
                 for j in range(1, npar):
                     out_R[row, j] = b[i, j]
@@ -113,7 +118,8 @@ def fit_caps(pts, R, w, off, counts, c0, balls, theta, view, r, reject_k, mad,
              status, centre, cov, rms, form, n_inl, inl, q_out, A_out, b_out, chi2_out,
              dof_out, dc_out, schur_ok):
     """Per ball ``balls[t]`` (rows off[k]:off[k] + counts[k] of the arrays of
-    :func:`prepare_caps`): the points moved up ``view`` by R . theta, a robust sphere of
+    :func:`prepare_caps`, ``view`` (N, 3) its ``out_view``): the points moved up their
+    view direction by R . theta, a robust sphere of
     radius ``r`` from ``c0[k]`` weighted by w / mean(w), its covariance (3, 3), rms and
     form error, its inliers (``inl`` over the ball's rows) and moved points (``q_out``);
     then the radial residuals, Jacobians J (centre) and K (theta) at the inliers and the
@@ -135,7 +141,7 @@ def fit_caps(pts, R, w, off, counts, c0, balls, theta, view, r, reject_k, mad,
             for j in range(npar):
                 sh += R[a + i, j] * theta[j]
             for j in range(3):
-                q[i, j] = pts[a + i, j] + sh * view[j]
+                q[i, j] = pts[a + i, j] + sh * view[a + i, j]
                 q_out[a + i, j] = q[i, j]
             sw += w[a + i]
         mean_w = sw / m
@@ -190,7 +196,7 @@ def fit_caps(pts, R, w, off, counts, c0, balls, theta, view, r, reject_k, mad,
             nn[1] = v1 / dist
             nn[2] = v2 / dist
             res = dist - r
-            along = nn[0] * view[0] + nn[1] * view[1] + nn[2] * view[2]
+            along = nn[0] * view[a + i, 0] + nn[1] * view[a + i, 1] + nn[2] * view[a + i, 2]
             wi = w[a + i]
             for j in range(npar):
                 Kr[j] = along * R[a + i, j]

@@ -57,13 +57,32 @@ def _grad(f, r, j, h, w):
     return gv, gu
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def log_and_depth(image, xyz, mask, directions, ln_i, t):
+    """ln_i = log(image) where image > 0, else NaN; t = x . d, each valid point's
+    position along its pixel's viewing direction d (mm), NaN where invalid. image, mask
+    : (h, w); xyz, directions : (h, w, 3) (directions may be a broadcast view); ln_i, t :
+    (h, w) float64 outputs. Rows in parallel."""
+    h, w = mask.shape
+    for r in nb.prange(h):
+        for j in range(w):
+            v = image[r, j]
+            ln_i[r, j] = np.log(v) if v > 0 else np.nan
+            if mask[r, j]:
+                t[r, j] = (xyz[r, j, 0] * directions[r, j, 0] + xyz[r, j, 1]
+                           * directions[r, j, 1] + xyz[r, j, 2] * directions[r, j, 2])
+            else:
+                t[r, j] = np.nan
+
+
+@nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
 def gradient_terms(ln_i, t, px2, out):
     """out[..., 0] = (gi_u gt_u + gi_v gt_v) / px2, out[..., 1] = gi_u, out[..., 2] = gi_v
     with (gi_v, gi_u) = np.gradient(ln_i), (gt_v, gt_u) = np.gradient(t) (the same
-    arithmetic). ln_i, t : (h, w) float64, h, w >= 2; out : (h, w, 3) float64."""
+    arithmetic). ln_i, t : (h, w) float64, h, w >= 2; out : (h, w, 3) float64. Rows in
+    parallel."""
     h, w = ln_i.shape
-    for r in range(h):
+    for r in nb.prange(h):
         for j in range(w):
             gi_v, gi_u = _grad(ln_i, r, j, h, w)
             gt_v, gt_u = _grad(t, r, j, h, w)
@@ -134,4 +153,31 @@ def within_taxicab(mask, k):
                 v = min(v, d[r, j + 1] + 1)
             d[r, j] = v
             out[r, j] = v <= k
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def eroded_taxicab(mask, k):
+    """Pixels of ``mask`` (h, w) bool whose city-block distance to every False pixel,
+    and to every pixel outside the array, exceeds ``k`` (>= 1): the same as
+    ``scipy.ndimage.binary_erosion(mask, iterations=k)`` with its default cross
+    structure and border value 0. Two raster passes of the exact 4-neighbour distance
+    transform to the nearest False pixel (the outside counting as False)."""
+    h, w = mask.shape
+    big = h + w + 1
+    d = np.empty((h, w), dtype=np.int64)
+    for r in range(h):
+        for j in range(w):
+            v = big if mask[r, j] else 0
+            v = min(v, d[r - 1, j] + 1 if r > 0 else 1)
+            v = min(v, d[r, j - 1] + 1 if j > 0 else 1)
+            d[r, j] = v
+    out = np.empty((h, w), dtype=np.bool_)
+    for r in range(h - 1, -1, -1):
+        for j in range(w - 1, -1, -1):
+            v = d[r, j]
+            v = min(v, d[r + 1, j] + 1 if r < h - 1 else 1)
+            v = min(v, d[r, j + 1] + 1 if j < w - 1 else 1)
+            d[r, j] = v
+            out[r, j] = v > k
     return out

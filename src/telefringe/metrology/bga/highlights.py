@@ -140,7 +140,8 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
         sub = np.where(reg, image[sl], -np.inf)
         if not np.any(np.isfinite(sub)):
             continue
-        pi, pj = np.unravel_index(int(np.nanargmax(np.nan_to_num(sub, nan=-np.inf))),
+        # (no NaN left: argmax gives nanargmax's first largest)
+        pi, pj = np.unravel_index(int(np.argmax(np.nan_to_num(sub, nan=-np.inf))),
                                   sub.shape)
         pv, pu = sl[0].start + pi, sl[1].start + pj
         if not (h <= pv < rows - h and h <= pu < cols - h):
@@ -151,13 +152,13 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
         found.append((k, pv, pu, win))
     spots = (_gauss_spots(np.stack([f[3] for f in found]), float(h), float(h))
              if found else [])
+    V0, U0 = np.meshgrid(np.arange(-h, h + 1, dtype=np.float64),
+                         np.arange(-h, h + 1, dtype=np.float64), indexing="ij")
     for (k, pv, pu, _), g in zip(found, spots, strict=True):
         if g is None:
             continue
         x, y, cov_uv, _ = g
-        du = np.arange(-h, h + 1, dtype=np.float64) - (x - h)
-        dv = np.arange(-h, h + 1, dtype=np.float64) - (y - h)
-        DV, DU = np.meshgrid(dv, du, indexing="ij")
+        DV, DU = V0 - (y - h), U0 - (x - h)
         P = cloud.xyz[pv - h:pv + h + 1, pu - h:pu + h + 1].reshape(-1, 3)
         ok = np.all(np.isfinite(P), axis=1)
         if np.count_nonzero(ok) < 12:

@@ -12,7 +12,11 @@ from telefringe.metrology.bga.coplanarity import seating_plane_coplanarity
 from telefringe.metrology.bga.grid import _claim_positions, _grid_local, _register_grid
 from telefringe.metrology.bga.highlights import _fit_along_line, _refine_by_highlights
 from telefringe.metrology.bga.nominal import BGANominal
-from telefringe.metrology.bga.psf import _brightness_gradient_terms, _fit_caps_smoothed
+from telefringe.metrology.bga.psf import (
+    _brightness_gradient_terms,
+    _fit_caps_smoothed,
+    shared_direction,
+)
 from telefringe.metrology.bga.result import BGAMeasurement
 from telefringe.metrology.bga.segment import cap_candidates, segment
 from telefringe.reconstruction.cloud import PointCloud
@@ -231,9 +235,11 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
 
 def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradient: bool):
     """Stage: one CapFit per candidate (those with a reason stay unfitted)."""
-    view = -np.asarray(cloud.direction, dtype=np.float64)
     idx = [k for k, c in enumerate(cands) if c.reason is None]
     caps_in = [(cands[k].points, cands[k].sigma, cands[k].gradient) for k in idx]
+    shared = shared_direction(cloud)
+    # toward the camera: one vector for every point, or each point's own (pinhole)
+    view = -shared if shared is not None else [cands[k].view for k in idx]
     s2 = (np.nan, np.nan)
     cov_theta = None
     psf_run = (0, None)
@@ -268,7 +274,10 @@ def _centres_and_apexes(cloud, seg, image, cands, caps, cov_theta, cap_model):
     refined = np.zeros(len(fits), dtype=bool)
     med = None
     regions = [(c.slice, c.region) for c in cands]
-    if image is not None:
+    d = shared_direction(cloud)
+    if image is not None and d is not None:
+        # (a pinhole camera sees each ball from another direction: the highlights'
+        # common offset does not hold, the centres stay the cap fits')
         sig_top = np.array([_apex_sigma(f, nrm) for f in fits])
         centre, sig_c, refined, lines, med = _refine_by_highlights(
             cloud, image, regions, centre, sig_c, nrm, radius, sig_top)
@@ -276,7 +285,6 @@ def _centres_and_apexes(cloud, seg, image, cands, caps, cov_theta, cap_model):
     if cap_model == "psf" and image is not None and med is not None:
         # every ball's centre lies on its highlight's camera line shifted by the common
         # offset: fit the one remaining unknown, the depth along that line
-        d = np.asarray(cloud.direction, dtype=np.float64)
         for k in np.flatnonzero(refined):
             res = _fit_along_line(caps[k].points, caps[k].weights, lines[k] - med, d,
                                   radius[k], centre[k])

@@ -8,7 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from telefringe.metrology._common import _MAD
+from telefringe.metrology._common import _MAD, MetrologyError
 from telefringe.metrology.bga.caps import CapFit
 from telefringe.reconstruction.cloud import PointCloud
 
@@ -38,6 +38,17 @@ class PSFCapFits(NamedTuple):
     rounds: int
     converged: bool
     n_balls: int
+
+
+def shared_direction(cloud: PointCloud) -> np.ndarray | None:
+    """The cloud's viewing direction (3,) when every pixel shares it (a telecentric
+    camera), else None (a pinhole camera: :attr:`PointCloud.directions` per pixel)."""
+    from telefringe.reconstruction.cloud import TriangulationError
+
+    try:
+        return np.asarray(cloud.direction, dtype=np.float64)
+    except TriangulationError:
+        return None
 
 
 def _smoothing_shape(pts: np.ndarray, centre: np.ndarray, r: float, view: np.ndarray):
@@ -74,12 +85,17 @@ def _brightness_gradient_terms(cloud: PointCloud, image: np.ndarray, projector,
     s^2 k is then estimated from the data (``known`` False). Only the u fringes are
     modelled (the v axis adds little depth information). NaN where unknown.
     """
-    d = np.asarray(cloud.direction, dtype=np.float64)
-    xyz = np.where(cloud.mask[..., None], cloud.xyz, np.nan)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ln_i = np.log(np.where(image > 0, image, np.nan))
+    d = shared_direction(cloud)
     B = np.zeros(cloud.shape + (3,))
     if projector is not None:
+        if d is None:
+            raise MetrologyError(
+                "the projector's brightness-gradient term needs one viewing direction for "
+                "every pixel (a telecentric camera); with this camera leave out the "
+                "projector (the term's factor is then estimated from the caps)")
+        xyz = np.where(cloud.mask[..., None], cloud.xyz, np.nan)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ln_i = np.log(np.where(image > 0, image, np.nan))
         gi_v, gi_u = np.gradient(ln_i)
         up = np.asarray(projector.project(xyz)[0], dtype=np.float64)
         x0 = np.nanmedian(xyz.reshape(-1, 3), axis=0)
@@ -88,12 +104,17 @@ def _brightness_gradient_terms(cloud: PointCloud, image: np.ndarray, projector,
         gu_v, gu_u = np.gradient(up)
         B[..., 0] = (gi_u * gu_u + gi_v * gu_v) / du_dt / px_mm**2
         return B, True
-    t = xyz @ d
-    if min(t.shape) >= 2:  # (one compiled pass, the same arithmetic as below)
-        from telefringe.metrology.bga._kernels import gradient_terms
+    # (compiled passes: the same arithmetic as the NumPy form at the end)
+    from telefringe.metrology.bga._kernels import gradient_terms, log_and_depth
 
-        gradient_terms(np.ascontiguousarray(ln_i), np.ascontiguousarray(t),
-                       float(px_mm**2), B)
+    ln_i = np.empty(cloud.shape)
+    t = np.empty(cloud.shape)
+    log_and_depth(np.ascontiguousarray(image, dtype=np.float64),
+                  np.ascontiguousarray(cloud.xyz, dtype=np.float64),
+                  np.ascontiguousarray(cloud.mask),
+                  np.broadcast_to(cloud.directions, cloud.shape + (3,)), ln_i, t)
+    if min(t.shape) >= 2:
+        gradient_terms(ln_i, t, float(px_mm**2), B)
         return B, False
     gi_v, gi_u = np.gradient(ln_i)
     gt_v, gt_u = np.gradient(t)
@@ -156,8 +177,7 @@ def _reduced_system(fits: dict, npar: int):
             float(fits["chi2"][ok].sum()), int(fits["dof"][ok].sum()))
 
 
-def _fit_packed(packed: dict, balls: np.ndarray, theta: np.ndarray, view: np.ndarray,
-                r: float) -> dict:
+def _fit_packed(packed: dict, balls: np.ndarray, theta: np.ndarray, r: float) -> dict:
     """The caps ``balls`` of ``packed`` (from :func:`_pack_caps`) fitted with the common
     parameters ``theta``, one ball per thread
     (:func:`telefringe.metrology.bga._caps_kernels.fit_caps`)."""
@@ -172,7 +192,8 @@ def _fit_packed(packed: dict, balls: np.ndarray, theta: np.ndarray, view: np.nda
            "dc": np.zeros((nb, 3, npar)), "schur_ok": np.zeros(nb, dtype=bool)}
     fit_caps(packed["pts"], packed["R"], packed["w"], packed["off"], packed["counts"],
              packed["c0"], np.ascontiguousarray(balls, dtype=np.int64),
-             np.ascontiguousarray(theta, dtype=np.float64), view, float(r), 4.0, _MAD,
+             np.ascontiguousarray(theta, dtype=np.float64), packed["view"], float(r), 4.0,
+             _MAD,
              out["status"], out["centre"], out["cov"], out["rms"], out["form"],
              out["n_inl"], out["inl"], out["q"], out["A"], out["b"], out["chi2"],
              out["dof"], out["dc"], out["schur_ok"])
@@ -182,10 +203,11 @@ def _fit_packed(packed: dict, balls: np.ndarray, theta: np.ndarray, view: np.nda
 _REASONS = {1: "too_few_points", 2: "fit_failed", 3: "too_few_points_facing_camera"}
 
 
-def _pack_caps(caps, view: np.ndarray, r: float, cos_min: float, npar: int) -> dict:
+def _pack_caps(caps, view, r: float, cos_min: float, npar: int) -> dict:
     """The caps packed one after another and prepared for the point-spread fits
     (:func:`telefringe.metrology.bga._caps_kernels.prepare_caps`: finite points, a robust
-    sphere of radius r, the points facing the camera, their regressors and weights)."""
+    sphere of radius r, the points facing the camera, their regressors and weights).
+    ``view``: (3,) toward the camera for every point, or per cap (m, 3)."""
     from telefringe.metrology.bga._caps_kernels import prepare_caps
 
     nb = len(caps)
@@ -200,12 +222,18 @@ def _pack_caps(caps, view: np.ndarray, r: float, cos_min: float, npar: int) -> d
                                                     for c in caps]))
 
     p = {"off": off, "pts": np.zeros((N, 3)), "R": np.zeros((N, npar)), "w": np.zeros(N),
-         "counts": np.zeros(nb, dtype=np.int64), "c0": np.zeros((nb, 3)),
-         "status": np.empty(nb, dtype=np.int64)}
-    prepare_caps(cat(0, 3).reshape(N, 3), cat(1, 0), cat(2, 3).reshape(N, 3), off, view,
+         "view": np.zeros((N, 3)), "counts": np.zeros(nb, dtype=np.int64),
+         "c0": np.zeros((nb, 3)), "status": np.empty(nb, dtype=np.int64)}
+    v = np.asarray(view, dtype=np.float64) if not isinstance(view, list) else None
+    if v is not None and v.shape == (3,):
+        views = np.ascontiguousarray(np.broadcast_to(v, (N, 3)))
+    else:
+        views = np.ascontiguousarray(np.concatenate(view) if nb else np.zeros((0, 3)),
+                                     dtype=np.float64).reshape(N, 3)
+    prepare_caps(cat(0, 3).reshape(N, 3), cat(1, 0), cat(2, 3).reshape(N, 3), views, off,
                  float(r), float((r * np.sin(np.radians(80.0))) ** 2), float(cos_min),
-                 int(npar), 4.0, _MAD, p["pts"], p["R"], p["w"], p["counts"], p["c0"],
-                 p["status"])
+                 int(npar), 4.0, _MAD, p["pts"], p["R"], p["w"], p["view"], p["counts"],
+                 p["c0"], p["status"])
     return p
 
 
@@ -215,8 +243,10 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
     """Fixed-radius cap fits that model the camera's point spread, and its variance.
 
     ``caps``: list of (pts (m, 3), sig (m,), B (m, 3)) per ball (B: see
-    :func:`_brightness_gradient_terms`, zeros when no image). The points of each ball are
-    moved up the viewing direction by s^2 (g + B0) + a . (B1, B2) (g: see
+    :func:`_brightness_gradient_terms`, zeros when no image); ``view``: the unit vector
+    toward the camera, (3,) for every point (a telecentric camera) or a list of (m, 3)
+    per ball (each point's own: a pinhole camera). The points of each ball are
+    moved up their viewing direction by s^2 (g + B0) + a . (B1, B2) (g: see
     :func:`_smoothing_shape`; a = 0 unless ``free_gradient``) and fitted with a sphere of
     radius ``r`` weighted by 1 / (sigma_line cos(tilt))^2. The global parameters
     theta = (s^2[, a1, a2]), common to every ball (one camera, one rig), are estimated by
@@ -240,7 +270,6 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
 
     cos_min = np.cos(np.radians(max_view_angle_deg))
     npar = 3 if free_gradient else 1
-    view = np.ascontiguousarray(view, dtype=np.float64)
     packed = _pack_caps(caps, view, r, cos_min, npar)
     status = packed["status"]
     usable = np.flatnonzero(status == 0)
@@ -255,7 +284,7 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
     n_rounds = 0
     for _ in range(rounds):
         n_rounds += 1
-        A, bvec, chi2, dof = _reduced_system(_fit_packed(packed, sub, theta, view, r), npar)
+        A, bvec, chi2, dof = _reduced_system(_fit_packed(packed, sub, theta, r), npar)
         try:
             step = -np.linalg.solve(A, bvec)
             cov = chi2 / max(dof - npar, 1) * np.linalg.inv(A)
@@ -280,7 +309,7 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
         if not converged:
             warnings.warn(f"the point-spread variance did not converge in {n_rounds} rounds",
                           PSFConvergenceWarning, stacklevel=3)
-    fits = _fit_packed(packed, usable, theta_fit, view, r)
+    fits = _fit_packed(packed, usable, theta_fit, r)
     out = [None if s == 0 else CapFit(None, _REASONS[int(s)]) for s in status]
     off, counts = packed["off"], packed["counts"]
     for t, k in enumerate(usable):

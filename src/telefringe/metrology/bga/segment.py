@@ -39,6 +39,8 @@ class Candidate(NamedTuple):
     :data:`telefringe.metrology.bga.result.NOT_MEASURED_REASONS`).
     points, sigma : (m, 3), (m,) the cap points and their ``sigma_line`` (None when
     ``reason``).   gradient : (m, 3) brightness-gradient terms (zeros without them).
+    view : (m, 3) unit vectors from each point toward the camera (along its pixel's
+    line of sight: the same for every point of a telecentric camera).
     """
 
     slice: tuple
@@ -47,6 +49,7 @@ class Candidate(NamedTuple):
     points: np.ndarray | None = None
     sigma: np.ndarray | None = None
     gradient: np.ndarray | None = None
+    view: np.ndarray | None = None
 
 
 def _sigma_weights(cloud: PointCloud, sel: np.ndarray):
@@ -116,10 +119,13 @@ def cap_candidates(cloud: PointCloud, seg: Segmentation, D: float, *, image, gra
     """
     from scipy import ndimage
 
+    from telefringe.metrology.bga._kernels import eroded_taxicab
+
     labels, px_mm, foot = seg.labels, seg.px_mm, seg.footprint_px
     sizes = np.bincount(labels.ravel(), minlength=seg.n_labels + 1)
     slices = ndimage.find_objects(labels)
     cap_thr = 0.3 * D if cap_min_height is None else float(cap_min_height)
+    dirs = np.asarray(cloud.directions, dtype=np.float64)
     out = []
     for lab in range(1, seg.n_labels + 1):
         sl = slices[lab - 1]
@@ -134,8 +140,8 @@ def cap_candidates(cloud: PointCloud, seg: Segmentation, D: float, *, image, gra
             out.append(Candidate(sl, region, "region_too_large"))
             continue
         reg = region
-        if edge_px > 0:
-            reg = ndimage.binary_erosion(reg, iterations=int(edge_px))
+        if edge_px > 0:  # (as ndimage.binary_erosion(reg, iterations=edge_px))
+            reg = eroded_taxicab(reg, int(edge_px))
         sel = reg & (np.nan_to_num(seg.height[sl], nan=-np.inf) > cap_thr)
         if image is not None and highlight_px > 0:
             # pixels near the specular highlight: the camera's point spread mixes the
@@ -149,5 +155,7 @@ def cap_candidates(cloud: PointCloud, seg: Segmentation, D: float, *, image, gra
             out.append(Candidate(sl, region, "too_few_points"))
             continue
         grad = np.zeros((pts.shape[0], 3)) if gradient is None else gradient[sl][sel]
-        out.append(Candidate(sl, region, None, pts, cloud.sigma_line[sl][sel], grad))
+        view = (np.broadcast_to(-dirs, pts.shape).copy() if dirs.ndim == 1
+                else -dirs[sl][sel])
+        out.append(Candidate(sl, region, None, pts, cloud.sigma_line[sl][sel], grad, view))
     return out
