@@ -1,7 +1,8 @@
-"""BGA metrology with a pinhole camera (each pixel its own viewing direction): a small
-virtual BGA rendered with the ``macro`` preset (pinhole camera and projector, cropped to
-270 x 270 px around an 8 x 8 part), measured against the scene's truth with bounds from the
-predicted uncertainties."""
+"""BGA metrology on rigs that are not telecentric: with a pinhole camera (each pixel its
+own viewing direction), a small virtual BGA rendered with the ``macro`` preset (pinhole
+camera and projector, cropped to 270 x 270 px around an 8 x 8 part) measured against the
+scene's truth with bounds from the predicted uncertainties; with a pinhole projector, the
+highlights' offset drifting over the part."""
 
 from __future__ import annotations
 
@@ -91,3 +92,49 @@ def test_pinhole_bga_with_an_image_and_its_limits(macro_bga):
     # the projector's brightness-gradient term needs one viewing direction
     with pytest.raises(MetrologyError, match="one viewing direction for every pixel"):
         measure_bga(rec.cloud, nominal, image=rec.radiance, projector=vr.projector)
+
+
+def _spot_image(cloud, apexes, offset):
+    """An image with one specular spot per ball at ``offset(apex)`` (mm) from its apex."""
+    xs, ys = np.nan_to_num(cloud.x), np.nan_to_num(cloud.y)
+    img = np.full(cloud.shape, 10.0)
+    for a in apexes:
+        ox, oy = offset(a)
+        img += 200.0 * np.exp(-((xs - a[0] - ox) ** 2 + (ys - a[1] - oy) ** 2)
+                              / (2 * 0.025**2))
+    return img + np.random.default_rng(4).normal(0, 0.5, img.shape)
+
+
+def test_highlight_offset_that_drifts_over_the_part_is_followed():
+    """A pinhole projector lights each ball from another direction: the highlight's
+    offset from the ball's centre drifts over the part (here 6 um per mm, ~28 um over
+    the part). The refinement fits that trend instead of one median offset; a common
+    offset (telecentric) keeps the median (the trend's slopes are not significant)."""
+    from test_metrology import bga_cloud
+
+    from telefringe.metrology.bga.highlights import _offset_trend
+
+    cloud, present, offs, apex = bga_cloud(sigma=0.004, seed=3)
+    nom = BGANominal(rows=6, cols=7, pitch_mm=0.8, ball_diameter_mm=0.45)
+    mid = apex[present].mean(axis=0)
+    true_xy = apex[present][:, :2]
+
+    def spread(m):
+        e = m.centre[:, :2] - true_xy
+        return (e - e.mean(axis=0)).std(axis=0)
+
+    drift = _spot_image(cloud, apex[present],
+                        lambda a: (0.04 + 0.006 * (a[0] - mid[0]),
+                                   -0.03 + 0.006 * (a[1] - mid[1])))
+    m = measure_bga(cloud, nom, image=drift)
+    assert m.refined.all()
+    # relative positions near their uncertainty: their spread is 1.24 / 0.32 of the
+    # centres' sigma in x / y (one median offset: 5.1 / 5.0); bound 2x that
+    assert np.all(spread(m) < 2.5 * np.median(m.sigma_centre[:, :2], axis=0))
+    # one common offset: no trend is found (the median is used)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-3, 3, (40, 2))
+    common = np.array([0.04, -0.03, 0.0]) + rng.normal(0, 1e-3, (40, 3))
+    assert _offset_trend(common, xy) is None
+    assert _offset_trend(np.column_stack([0.006 * xy, np.zeros(40)])
+                         + rng.normal(0, 1e-3, (40, 3)), xy) is not None

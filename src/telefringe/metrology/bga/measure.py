@@ -171,11 +171,16 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
         alone. The highlight's 3-D point is where its camera line meets the ball's fitted
         sphere. Balls without a clear highlight keep their cap centres. With the
         point-spread model the image also gives the brightness-gradient terms.
+        With a pinhole camera (a cloud whose pixels have their own viewing directions,
+        :attr:`PointCloud.directions` (rows, cols, 3)) each ball is seen from another
+        direction, so there is no common offset: the highlights do not move the
+        centres (``refined`` False); the cap fits, their view-angle cut and the
+        point-spread model use each point's own viewing direction.
     projector : TelecentricDevice, optional
         The (calibrated) projector, for the brightness-gradient term of the point-spread
         model (u fringes only; without it the term's geometric factor is estimated,
-        which also absorbs the v fringes' share). Needs ``cap_model="psf"`` and an
-        ``image``.
+        which also absorbs the v fringes' share). Needs ``cap_model="psf"``, an
+        ``image`` and a telecentric camera (one viewing direction).
     options : BGAOptions, optional (default ``BGAOptions()``).
 
     Returns
@@ -187,7 +192,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
     MetrologyError
         No ball, no ball that could be fitted, a grid that does not fit the nominal one,
         an image of the wrong shape, or a ``projector`` or ``highlight_px`` that would
-        not be used (no image, or a cap model without the point-spread term).
+        not be used (no image, or a cap model without the point-spread term), or a
+        ``projector`` with a pinhole camera.
 
     Warns
     -----
@@ -286,7 +292,8 @@ def _centres_and_apexes(cloud, seg, image, cands, caps, cov_theta, cap_model):
         # every ball's centre lies on its highlight's camera line shifted by the common
         # offset: fit the one remaining unknown, the depth along that line
         for k in np.flatnonzero(refined):
-            res = _fit_along_line(caps[k].points, caps[k].weights, lines[k] - med, d,
+            res = _fit_along_line(caps[k].points, caps[k].weights,
+                                  lines[k] - (med if med.ndim == 1 else med[k]), d,
                                   radius[k], centre[k])
             if res is not None:
                 centre[k], s_t = res
