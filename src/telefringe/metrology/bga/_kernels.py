@@ -3,6 +3,8 @@ arithmetic as the NumPy forms they replace, in one pass without temporaries."""
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
@@ -181,3 +183,96 @@ def eroded_taxicab(mask, k):
             d[r, j] = v
             out[r, j] = v > k
     return out
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _spot_model(P, n0, n1, m, J):
+    """A pixel-integrated 2D Gaussian + background, P = (a, x, y, sg, b), on an n0 x n1
+    window (row-major): model m (n0 n1,) and Jacobian J (n0 n1, 5)."""
+    a, x, y, sg, b = P[0], P[1], P[2], P[3], P[4]
+    r2 = np.sqrt(2.0)
+    c_pdf = 1.0 / np.sqrt(2.0 * np.pi)
+    ex = np.empty(n1)
+    dex = np.empty(n1)
+    dsx = np.empty(n1)
+    ey = np.empty(n0)
+    dey = np.empty(n0)
+    dsy = np.empty(n0)
+    for grid_n, c, e, de_dc, de_ds in ((n1, x, ex, dex, dsx), (n0, y, ey, dey, dsy)):
+        for i in range(grid_n):
+            zp = (i + 0.5 - c) / (r2 * sg)
+            zm = (i - 0.5 - c) / (r2 * sg)
+            ep = np.exp(-zp * zp)
+            em = np.exp(-zm * zm)
+            e[i] = 0.5 * (math.erf(zp) - math.erf(zm))
+            de_dc[i] = -c_pdf / sg * (ep - em)
+            de_ds[i] = -(r2 * c_pdf) / sg * (zp * ep - zm * em)
+    k = 0
+    for v in range(n0):
+        for u in range(n1):
+            g = ey[v] * ex[u]
+            m[k] = a * g + b
+            J[k, 0] = g
+            J[k, 1] = a * ey[v] * dex[u]
+            J[k, 2] = a * dey[v] * ex[u]
+            J[k, 3] = a * (ey[v] * dsx[u] + dsy[v] * ex[u])
+            J[k, 4] = 1.0
+            k += 1
+
+
+@nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def gauss_spots(W, P0, lo, hi, max_iter, P_out, cost_out, JtJ_out, ok_out):
+    """Levenberg-Marquardt fits of :func:`_spot_model` to each window ``W`` (n, n0, n1)
+    from ``P0`` (n, 5), bounds ``lo``, ``hi`` (5,) applied by projection: damping
+    ``H + lam diag(H)``, lam from 1e-3, /10 on a better step (>= 1e-12), x10 otherwise;
+    a window is done when its cost falls by at most 1e-12 of itself, its parameters move
+    by less than 1e-10 relative (+1e-3), or lam reaches 1e12. Outputs per window: the
+    parameters, the cost (sum of squared residuals), J^T J (5, 5) at the solution, and
+    ok False where a damped system was singular (the fit stopped there). Windows in
+    parallel."""
+    n, n0, n1 = W.shape
+    npx = n0 * n1
+    for k in nb.prange(n):
+        Y = W[k].reshape(npx)
+        P = P0[k].copy()
+        m = np.empty(npx)
+        J = np.empty((npx, 5))
+        mn = np.empty(npx)
+        Jn = np.empty((npx, 5))
+        _spot_model(P, n0, n1, m, J)
+        r = m - Y
+        cost = np.sum(r * r)
+        lam = 1e-3
+        ok = True
+        for _ in range(max_iter):
+            H = J.T @ J
+            g = J.T @ r
+            A = H.copy()
+            for i in range(5):
+                A[i, i] += lam * H[i, i]
+            if np.linalg.det(A) == 0.0:
+                ok = False
+                break
+            step = -np.linalg.solve(A, g)
+            Pn = np.minimum(np.maximum(P + step, lo), hi)
+            _spot_model(Pn, n0, n1, mn, Jn)
+            rn = mn - Y
+            cn = np.sum(rn * rn)
+            small = np.max(np.abs(Pn - P) / (np.abs(P) + 1e-3)) < 1e-10
+            better = cn < cost
+            done = small
+            if better:
+                done = done or (cost - cn) <= 1e-12 * cost
+                P = Pn
+                r = rn
+                J[:, :] = Jn
+                cost = cn
+                lam = max(lam / 10, 1e-12)
+            else:
+                lam = min(lam * 10, 1e12)
+            if done or lam >= 1e12:
+                break
+        P_out[k] = P
+        cost_out[k] = cost
+        JtJ_out[k] = J.T @ J
+        ok_out[k] = ok

@@ -14,89 +14,38 @@ def _gauss_spots(wins: np.ndarray, u0: float, v0: float, *, max_iter: int = 60):
 
     ``wins`` (n, n0, n1): each is fitted with a * ex(u) * ey(v) + b, ex the integral over
     the pixel of a unit Gaussian of centre x and sigma sg (error functions), by
-    Levenberg-Marquardt run on all windows at once (analytic Jacobian; bounds a >= 0,
-    -1 <= x <= n1, -1 <= y <= n0, 0.2 <= sg <= 0.4 min(n0, n1) by projection). Returns
-    a list of (x, y, cov_xy (2, 2), sg) in window pixel coordinates, or None where the
-    fit failed or the spot is not clear (peak below 10 residual sigma, or within a pixel
-    of the window's edge).
+    Levenberg-Marquardt, one window per thread (analytic Jacobian; bounds a >= 0,
+    -1 <= x <= n1, -1 <= y <= n0, 0.2 <= sg <= 0.4 min(n0, n1) by projection;
+    :func:`telefringe.metrology.bga._kernels.gauss_spots`). Returns a list of (x, y,
+    cov_xy (2, 2), sg) in window pixel coordinates, or None where the fit failed or the
+    spot is not clear (peak below 10 residual sigma, or within a pixel of the window's
+    edge).
     """
-    from scipy.special import erf
+    from telefringe.metrology.bga._kernels import gauss_spots
 
-    W = np.asarray(wins, dtype=np.float64)
+    W = np.ascontiguousarray(wins, dtype=np.float64)
     n, n0, n1 = W.shape
-    uu = np.arange(n1, dtype=np.float64)
-    vv = np.arange(n0, dtype=np.float64)
-    r2 = np.sqrt(2.0)
-    c_pdf = 1.0 / np.sqrt(2.0 * np.pi)
     lo = np.array([0.0, -1.0, -1.0, 0.2, -np.inf])
     hi = np.array([np.inf, n1, n0, 0.4 * min(n0, n1), np.inf])
-
-    def axis_terms(c, sg, grid):
-        # (n, m): pixel integral of the unit Gaussian and its derivatives in c and sg
-        zp = (grid[None, :] + 0.5 - c[:, None]) / (r2 * sg[:, None])
-        zm = (grid[None, :] - 0.5 - c[:, None]) / (r2 * sg[:, None])
-        ep, em = np.exp(-zp * zp), np.exp(-zm * zm)
-        e = 0.5 * (erf(zp) - erf(zm))
-        de_dc = -c_pdf / sg[:, None] * (ep - em)
-        de_ds = -(r2 * c_pdf) / sg[:, None] * (zp * ep - zm * em)
-        return e, de_dc, de_ds
-
-    def model_jac(P):
-        a, x, y, sg, b = P.T
-        ex, dex, dsx = axis_terms(x, sg, uu)
-        ey, dey, dsy = axis_terms(y, sg, vv)
-        g = ey[:, :, None] * ex[:, None, :]  # (n, n0, n1)
-        m = a[:, None, None] * g + b[:, None, None]
-        J = np.stack([g, a[:, None, None] * ey[:, :, None] * dex[:, None, :],
-                      a[:, None, None] * dey[:, :, None] * ex[:, None, :],
-                      a[:, None, None] * (ey[:, :, None] * dsx[:, None, :]
-                                          + dsy[:, :, None] * ex[:, None, :]),
-                      np.ones_like(g)], axis=-1)
-        return m.reshape(n, -1), J.reshape(n, -1, 5)
-
     b0 = W.reshape(n, -1).min(axis=1)
-    P = np.column_stack([(W.reshape(n, -1).max(axis=1) - b0) * 2 * np.pi * 0.7**2,
-                         np.full(n, float(u0)), np.full(n, float(v0)), np.full(n, 0.7), b0])
-    Y = W.reshape(n, -1)
-    m, J = model_jac(P)
-    r = m - Y
-    cost = np.sum(r * r, axis=1)
-    lam = np.full(n, 1e-3)
-    done = np.zeros(n, dtype=bool)
-    eye = np.eye(5)
-    for _ in range(max_iter):
-        H = np.einsum("nki,nkj->nij", J, J)
-        g = np.einsum("nki,nk->ni", J, r)
-        A = H + lam[:, None, None] * (np.einsum("nii->ni", H)[:, :, None] * eye)
-        try:
-            step = -np.linalg.solve(A, g[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            break
-        Pn = np.clip(P + step, lo, hi)
-        mn, Jn = model_jac(Pn)
-        rn = mn - Y
-        cn = np.sum(rn * rn, axis=1)
-        better = (cn < cost) & ~done
-        small = np.max(np.abs(Pn - P) / (np.abs(P) + 1e-3), axis=1) < 1e-10
-        P[better], r[better], J[better] = Pn[better], rn[better], Jn[better]
-        done |= better & ((cost - cn) <= 1e-12 * cost) | small
-        cost = np.where(better, cn, cost)
-        lam = np.where(better, np.maximum(lam / 10, 1e-12), np.minimum(lam * 10, 1e12))
-        done |= lam >= 1e12
-        if done.all():
-            break
+    P0 = np.column_stack([(W.reshape(n, -1).max(axis=1) - b0) * 2 * np.pi * 0.7**2,
+                          np.full(n, float(u0)), np.full(n, float(v0)), np.full(n, 0.7),
+                          b0])
+    P, cost = np.empty((n, 5)), np.empty(n)
+    JtJ, ok = np.empty((n, 5, 5)), np.empty(n, dtype=bool)
+    gauss_spots(W, np.ascontiguousarray(P0), lo, hi, int(max_iter), P, cost, JtJ, ok)
     out = []
     dof = max(n0 * n1 - 5, 1)
     for k in range(n):
         a, x, y, sg, b = P[k]
         s2r = float(cost[k]) / dof
         try:
-            cov = s2r * np.linalg.inv(J[k].T @ J[k])
+            cov = s2r * np.linalg.inv(JtJ[k])
         except np.linalg.LinAlgError:
             out.append(None)
             continue
         peak = a / (2 * np.pi * sg * sg)
-        if not (np.all(np.isfinite(P[k])) and peak > 10.0 * np.sqrt(s2r)
+        if not (ok[k] and np.all(np.isfinite(P[k])) and peak > 10.0 * np.sqrt(s2r)
                 and 1.0 <= x <= n1 - 2 and 1.0 <= y <= n0 - 2):
             out.append(None)
             continue
