@@ -171,3 +171,51 @@ def test_erosion_kernel_matches_scipy():
         full = np.ones((6, 5), dtype=bool)  # the border counts as outside
         np.testing.assert_array_equal(eroded_taxicab(full, k),
                                       ndimage.binary_erosion(full, iterations=k))
+
+
+def test_highlight_lines_match_their_numpy_form():
+    from telefringe.metrology._common import _poly_design
+    from telefringe.metrology.bga._kernels import highlight_lines
+
+    rng = np.random.default_rng(8)
+    d = np.array([0.1, -0.05, -1.0]) / np.linalg.norm([0.1, -0.05, -1.0])
+    n, h = 5, 3
+    vv, uu = np.mgrid[-h:h + 1, -h:h + 1].astype(float)
+    # points on each pixel's line: a smooth map of the pixel plus any depth along d
+    P = np.empty((n, 7, 7, 3))
+    for k in range(n):
+        base = np.array([k * 0.8, 0.2, 0.0]) + 0.033 * (uu[..., None] * [1, 0.01, 0]
+                                                      + vv[..., None] * [0.02, 1, 0])
+        P[k] = base + 0.001 * (uu**2)[..., None] * [1, 0, 0] + rng.normal(
+            0, 0.01, (7, 7, 1)) * d
+    P[1, 2, 3] = np.nan
+    P[4, :6] = np.nan  # too few points
+    xs, ys = rng.uniform(2.5, 3.5, n), rng.uniform(2.5, 3.5, n)
+    centres = np.array([[k * 0.8, 0.2, -0.1] for k in range(n)])
+    radii = np.full(n, 0.225)
+    radii[2] = 0.01  # the line misses this sphere
+    cov = np.tile(np.diag([1e-4, 2e-4]), (n, 1, 1))
+    sig = np.full(n, 1e-3)
+    lines, hl, hl_cov = (np.full((n, 3), np.nan), np.full((n, 3), np.nan),
+                         np.full((n, 3, 3), np.nan))
+    highlight_lines(P, xs, ys, d, centres, radii, cov, sig, lines, hl, hl_cov)
+    for k in range(n):
+        p = P[k].reshape(-1, 3)
+        ok = np.all(np.isfinite(p), axis=1)
+        if ok.sum() < 12:
+            assert np.all(np.isnan(hl[k]))
+            continue
+        Q = p[ok] - np.outer(p[ok] @ d, d)
+        A = _poly_design((uu - (xs[k] - h)).ravel()[ok], (vv - (ys[k] - h)).ravel()[ok], 2)
+        coef = np.linalg.lstsq(A, Q, rcond=None)[0]
+        q, J = coef[0], coef[1:3].T
+        w = q - centres[k]
+        b = w @ d
+        disc = b * b - (w @ w - radii[k] ** 2)
+        if not disc >= 0:
+            assert k == 2 and np.all(np.isnan(hl[k]))
+            continue
+        np.testing.assert_allclose(lines[k], q, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(hl[k], q + (-b - np.sqrt(disc)) * d, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(hl_cov[k], J @ cov[k] @ J.T + 1e-6 * np.outer(d, d),
+                                   rtol=1e-10, atol=1e-20)

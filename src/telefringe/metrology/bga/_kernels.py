@@ -276,3 +276,71 @@ def gauss_spots(W, P0, lo, hi, max_iter, P_out, cost_out, JtJ_out, ok_out):
         cost_out[k] = cost
         JtJ_out[k] = J.T @ J
         ok_out[k] = ok
+
+
+@nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
+def highlight_lines(P, xs, ys, d, centres, radii, cov_uv, sig_surface, lines, hl, hl_cov):
+    """Each highlight's camera line and its front intersection with the ball's sphere
+    (:func:`telefringe.metrology.bga.highlights._refine_by_highlights`), one ball per
+    thread.
+
+    P (n, s, s, 3): the points of each highlight's s x s window (NaN where invalid),
+    s = 2 h + 1; xs, ys (n,): the spot's centre in window pixels; d (3,): the viewing
+    direction; centres (n, 3), radii (n,): the balls' spheres; cov_uv (n, 2, 2): the
+    spot centre's covariance; sig_surface (n,): the surface's uncertainty along d.
+    Per ball with at least 12 valid points: the points' components across d,
+    q(u, v) = p - (p . d) d, fitted with a quadratic in the pixel offsets from the spot
+    (least squares, ``np.linalg.lstsq`` with NumPy's default cut-off); lines[k] = q at
+    the spot, hl[k] = its front intersection with the sphere, hl_cov[k] = J cov_uv J^T
+    + sig_surface^2 d d^T (J = dq / d(u, v)); they stay NaN where the line misses the
+    sphere or there are too few points.
+    """
+    n, s = P.shape[0], P.shape[1]
+    h = (s - 1) // 2
+    for k in nb.prange(n):
+        m = 0
+        for v in range(s):
+            for u in range(s):
+                if (np.isfinite(P[k, v, u, 0]) and np.isfinite(P[k, v, u, 1])
+                        and np.isfinite(P[k, v, u, 2])):
+                    m += 1
+        if m < 12:
+            continue
+        A = np.empty((m, 6))
+        Q = np.empty((m, 3))
+        i = 0
+        for v in range(s):
+            for u in range(s):
+                p0, p1, p2 = P[k, v, u, 0], P[k, v, u, 1], P[k, v, u, 2]
+                if not (np.isfinite(p0) and np.isfinite(p1) and np.isfinite(p2)):
+                    continue
+                along = p0 * d[0] + p1 * d[1] + p2 * d[2]
+                Q[i, 0] = p0 - along * d[0]
+                Q[i, 1] = p1 - along * d[1]
+                Q[i, 2] = p2 - along * d[2]
+                du = (u - h) - (xs[k] - h)
+                dv = (v - h) - (ys[k] - h)
+                A[i, 0] = 1.0
+                A[i, 1] = du
+                A[i, 2] = dv
+                A[i, 3] = du * du
+                A[i, 4] = du * dv
+                A[i, 5] = dv * dv
+                i += 1
+        coef = np.linalg.lstsq(A, Q, rcond=np.finfo(np.float64).eps * max(m, 6))[0]
+        q = coef[0]
+        w0 = q[0] - centres[k, 0]
+        w1 = q[1] - centres[k, 1]
+        w2 = q[2] - centres[k, 2]
+        b = w0 * d[0] + w1 * d[1] + w2 * d[2]
+        disc = b * b - ((w0 * w0 + w1 * w1 + w2 * w2) - radii[k] ** 2)
+        if not disc >= 0:
+            continue
+        t = -b - np.sqrt(disc)
+        J = np.ascontiguousarray(coef[1:3].T)  # (3, 2)
+        C = J @ cov_uv[k] @ J.T
+        for a in range(3):
+            lines[k, a] = q[a]
+            hl[k, a] = q[a] + t * d[a]
+            for c in range(3):
+                hl_cov[k, a, c] = C[a, c] + sig_surface[k] ** 2 * d[a] * d[c]

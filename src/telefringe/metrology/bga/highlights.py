@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from telefringe.metrology._common import MetrologyError, _poly_design, _tangent_basis
+from telefringe.metrology._common import MetrologyError, _tangent_basis
 from telefringe.reconstruction.cloud import PointCloud
 
 
@@ -101,34 +101,28 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
         found.append((k, pv, pu, win))
     spots = (_gauss_spots(np.stack([f[3] for f in found]), float(h), float(h))
              if found else [])
-    V0, U0 = np.meshgrid(np.arange(-h, h + 1, dtype=np.float64),
-                         np.arange(-h, h + 1, dtype=np.float64), indexing="ij")
-    for (k, pv, pu, _), g in zip(found, spots, strict=True):
-        if g is None:
-            continue
-        x, y, cov_uv, _ = g
-        DV, DU = V0 - (y - h), U0 - (x - h)
-        P = cloud.xyz[pv - h:pv + h + 1, pu - h:pu + h + 1].reshape(-1, 3)
-        ok = np.all(np.isfinite(P), axis=1)
-        if np.count_nonzero(ok) < 12:
-            continue
-        # the camera lines of the window's pixels: their points' components across the
-        # viewing direction, a smooth (affine up to distortion) function of the pixel
-        Q = P[ok] - np.outer(P[ok] @ d, d)
-        A = _poly_design(DU.ravel()[ok], DV.ravel()[ok], 2)
-        coef, *_ = np.linalg.lstsq(A, Q, rcond=None)
-        J = coef[1:3].T  # (3, 2): d q / d (u, v)
-        q = coef[0]
-        # front intersection of the line q + t d with the sphere
-        w = q - centre[k]
-        b = float(w @ d)
-        disc = b * b - (float(w @ w) - radius[k] ** 2)
-        if not disc >= 0:
-            continue
-        t = -b - np.sqrt(disc)
-        lines[k] = q
-        hl[k] = q + t * d
-        hl_cov[k] = J @ cov_uv @ J.T + sig_surface[k] ** 2 * np.outer(d, d)
+    fitted = [(f, g) for f, g in zip(found, spots, strict=True) if g is not None]
+    if fitted:
+        # (compiled, one ball per thread: the NumPy steps are in its docstring)
+        from telefringe.metrology.bga._kernels import highlight_lines
+
+        ks = np.array([f[0] for f, _ in fitted], dtype=np.int64)
+        P = np.ascontiguousarray(np.stack([
+            cloud.xyz[pv - h:pv + h + 1, pu - h:pu + h + 1] for (_, pv, pu, _), _ in fitted]),
+            dtype=np.float64)
+        n_f = ks.size
+        out_l, out_h = np.full((n_f, 3), np.nan), np.full((n_f, 3), np.nan)
+        out_c = np.full((n_f, 3, 3), np.nan)
+        highlight_lines(P, np.array([g[0] for _, g in fitted], dtype=np.float64),
+                        np.array([g[1] for _, g in fitted], dtype=np.float64),
+                        np.ascontiguousarray(d), np.ascontiguousarray(centre[ks],
+                                                                      dtype=np.float64),
+                        np.ascontiguousarray(radius[ks], dtype=np.float64),
+                        np.ascontiguousarray(np.stack([g[2] for _, g in fitted]),
+                                             dtype=np.float64),
+                        np.ascontiguousarray(np.asarray(sig_surface)[ks], dtype=np.float64),
+                        out_l, out_h, out_c)
+        lines[ks], hl[ks], hl_cov[ks] = out_l, out_h, out_c
     good = np.all(np.isfinite(hl), axis=1)
     if np.count_nonzero(good) < 3:
         return centre, sig_c, np.zeros(centre.shape[0], dtype=bool), lines, None
