@@ -38,6 +38,7 @@ from telefringe.calibration.uncertainty import (
     covariance_factor,
     point_jacobian,
     propagate_fd,
+    stereo_calibration,
     sum_point_jacobian,
 )
 from telefringe.metrology._common import MetrologyError, _tangent_basis
@@ -50,6 +51,7 @@ __all__ = [
     "sphere_uncertainty",
     "bga_uncertainty",
     "weight_v_of",
+    "for_stereo",
 ]
 
 #: Coverage factor of the expanded uncertainty U = k u (about 95 % for a Gaussian).
@@ -102,6 +104,31 @@ def weight_v_of(cloud) -> float:
     combined both axes (it kept a u/v ``residual``; equal weights per projector pixel,
     the triangulator's choice without the decoder's sigmas), else 0 (u_p alone)."""
     return 0.0 if getattr(cloud, "residual", None) is None else 1.0
+
+
+def for_stereo(calibration, coords_2, *, use_v_p: bool = True):
+    """The calibration of a two-camera rig as the ``calibration`` argument of the
+    functions here for a cloud matched between its cameras (``reconstruct --second``,
+    :func:`~telefringe.reconstruction.pipeline.reconstruct_stereo_scans`): its points'
+    calibration part then comes from both cameras' parameters through the two-ray
+    triangulation (:func:`~telefringe.calibration.uncertainty.stereo_calibration`).
+
+    Parameters
+    ----------
+    calibration : RigCalibration of a rig with two cameras.
+    coords_2 : the second camera's decoded coordinates (``Reconstruction.coords_2``:
+        ``u_p``, ``v_p``, ``sigma_u_p``, ``sigma_v_p``, (rows, cols) projector px).
+    use_v_p : whether the matching combined both axes (its default), as passed to it.
+
+    Returns
+    -------
+    StereoCalibration
+    """
+    axes = ["u"] + (["v"] if use_v_p and getattr(coords_2, "v_p", None) is not None else [])
+    maps = [getattr(coords_2, f"{a}_p") for a in axes]
+    sig = [getattr(coords_2, f"sigma_{a}_p", None) for a in axes]
+    return stereo_calibration(calibration, maps,
+                              sigmas_2=None if any(x is None for x in sig) else sig)
 
 
 def _factor(calibration):
