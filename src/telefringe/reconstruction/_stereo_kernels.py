@@ -116,6 +116,67 @@ def _f(s, Y, intr, A2, target):  # pragma: no cover - numba
 
 
 @njit(inline="always")
+def _border_root(lo, hi, Y, intr, coord, bound, g_hi):  # pragma: no cover - numba
+    """The line parameter, inside the image and within 1e-10 px of the border, where
+    the line crosses the image border ``coord`` (0: u, 1: v) = ``bound`` between lo
+    (inside) and hi (g_hi: its signed distance, outside); Illinois on the projection."""
+    a, b = lo, hi
+    u, v = _project(a, Y, intr)
+    ga = (u if coord == 0 else v) - bound
+    gb = g_hi
+    pos_in = ga > 0.0  # the inside's sign of the distance
+    inside = a
+    g_in = ga
+    for _ in range(80):
+        c = (a * gb - b * ga) / (gb - ga)
+        if not (min(a, b) < c < max(a, b)):
+            c = 0.5 * (a + b)
+        u, v = _project(c, Y, intr)
+        gc = (u if coord == 0 else v) - bound
+        if not np.isfinite(gc):
+            return np.nan
+        if (gc > 0.0) == pos_in or gc == 0.0:
+            inside = c
+            g_in = gc
+        if abs(g_in) <= 1e-10 or abs(b - a) <= 1e-15 * (1.0 + abs(c)):
+            return inside
+        if gc * gb > 0.0:
+            ga = 0.5 * ga
+        else:
+            a = b
+            ga = gb
+        b = c
+        gb = gc
+    return np.nan
+
+
+@njit(inline="always")
+def _border(lo, hi, Y, intr, rows, cols):  # pragma: no cover - numba
+    """Where the line, inside the image at lo, leaves it before hi (projected outside,
+    in front of the camera): the first crossing of a border, its inside end (line
+    parameter); NaN where hi is not outside the image in front of the camera."""
+    u, v = _project(hi, Y, intr)
+    if not (np.isfinite(u) and np.isfinite(v)):
+        return np.nan
+    best = np.nan
+    for coord in range(2):
+        x = u if coord == 0 else v
+        top = (cols if coord == 0 else rows) - 1.0
+        bound = np.nan
+        if x < 0.0:
+            bound = 0.0
+        elif x > top:
+            bound = top
+        if np.isfinite(bound):
+            e = _border_root(lo, hi, Y, intr, coord, bound, x - bound)
+            if not np.isfinite(e):
+                return np.nan
+            if not np.isfinite(best) or abs(e - lo) < abs(best - lo):
+                best = e
+    return best
+
+
+@njit(inline="always")
 def _neg(f):  # pragma: no cover - numba
     return f <= 0.0
 
@@ -208,13 +269,23 @@ def _match_rows(r0, r1, cols, O, D, bad, P0, offsets, A1, S1, B1, T1, A2, S2, B2
                     lo_s = s_prev if fin_p else s_q
                     hi_s = s_q if fin_p else s_prev
                     f_lo = f_prev if fin_p else f_q
-                    for _ in range(40):
-                        mid = 0.5 * (lo_s + hi_s)
-                        if np.isfinite(_f(mid, Y, intr, A2, a_obs)):
-                            lo_s = mid
-                        else:
-                            hi_s = mid
-                    f_edge = _f(lo_s, Y, intr, A2, a_obs)
+                    # where the line leaves the image, solve for the border (a few
+                    # projections); else (a hole, behind the camera) bisect as the
+                    # reference does
+                    e_s = _border(lo_s, hi_s, Y, intr, rows2, cols2)
+                    f_edge = np.nan
+                    if np.isfinite(e_s):
+                        f_edge = _f(e_s, Y, intr, A2, a_obs)
+                    if np.isfinite(f_edge):
+                        lo_s = e_s
+                    else:
+                        for _ in range(40):
+                            mid = 0.5 * (lo_s + hi_s)
+                            if np.isfinite(_f(mid, Y, intr, A2, a_obs)):
+                                lo_s = mid
+                            else:
+                                hi_s = mid
+                        f_edge = _f(lo_s, Y, intr, A2, a_obs)
                     if np.isfinite(f_edge) and _neg(f_edge) != _neg(f_lo):
                         if n_cross == 0:
                             ba = s_prev if fin_p else s_q
