@@ -37,6 +37,19 @@ gradient along the epipolar line (px of projector per mm of line) and ``sigma_2^
 interpolated variance ``sum w_i^2 sigma_i^2`` of the four neighbours' (bilinear weights
 w_i); with both axes ``sigma_s^{-2} = sum_axes (du_P2/ds)^2 / (sigma_1^2 + sigma_2^2)``.
 The point moves along the first camera's line: ``sigma_line = sigma_s``.
+
+Engines: the compiled matcher (:mod:`telefringe.reconstruction._stereo_kernels`, numba,
+parallel over the first camera's rows) runs the same samples, brackets and iterations per
+pixel for a pinhole or telecentric second camera; where a line leaves the second camera's
+image it solves the projection for the border (to 1e-10 px) instead of bisecting. The
+NumPy path below is the reference it is tested against (same flags, points within 1e-9
+mm: tests/test_stereo_kernels.py) and serves any other Device. Speed:
+``benchmarks/stereo.py``.
+
+Accuracy (issue 11, ``stereo`` preset binned 4, held-out plate): with the true rig the
+match is unbiased (-0.025 um on the plate from rendered, decoded scans; -0.008 um from the
+true phase maps), so the plate offset of the calibrated rig (+0.70 um) is the
+calibration's: the same rig gives +0.71 um from the true phase maps.
 """
 
 from __future__ import annotations
