@@ -2,6 +2,10 @@
 warm process.
 
 Usage: python benchmarks/inspect_bga.py [--runs 5] [--cache DIR] [--baseline SRC]
+       [--table OUT.npz] [--compare REF.npz]
+
+(Issue 14 calls it ``benchmarks/inspect.py``: a script of that name in this folder would
+shadow the standard library's ``inspect`` for every benchmark run from here.)
 
 The scan: the paper rig (1280 x 1024 camera, 1.3 Mpx), the default BGA (24 x 24 balls at
 0.8 mm pitch, 4 missing: 572 balls), u fringes 1/8/64 periods x 4 steps = 12 images at 3
@@ -21,6 +25,10 @@ shows the work done (on 2 threads, up to 2x the wall time).
 -C /tmp/tf_start``) in a new process, and print the ratios (wall and CPU). Without it,
 the ratio is of CPU time to the figures measured at the start (START_CPU).
 
+``--table OUT.npz`` saves the ball table (every per-ball array of the BGAMeasurement and
+its scalars); ``--compare REF.npz`` prints the largest difference of each against a
+table saved earlier (e.g. by the commit before a speed change).
+
 The rendered scan is cached in --cache (default: a temporary folder) as scan.npz; the
 first run renders it (about a minute).
 """
@@ -37,6 +45,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 #: measured with this script (--baseline) on commit a1becc3, the start of issue 14: 2
 #: threads, a shared machine at load average 16 on 2 cores, so the wall times are
 #: inflated; process (CPU) time, median of 3 runs, seconds. Without --baseline the ratio
@@ -48,7 +58,6 @@ STAGES = ("decode", "triangulate", "radiance", "measure")
 
 
 def _render(path: Path) -> None:
-    import numpy as np
 
     from telefringe.fringes.decode import decode
     from telefringe.simulate.presets import HDR_EXPOSURES, get_preset
@@ -73,9 +82,46 @@ def _render(path: Path) -> None:
     np.savez(path, meta=json.dumps(meta), **arrays)
 
 
-def _time(path: str, runs: int) -> dict:
+#: the BGAMeasurement's per-ball arrays compared by --compare
+TABLE = ("index", "centre", "sigma_centre", "refined", "apex", "height", "sigma_height",
+         "sigma_height_noise", "diameter", "position", "rms", "n_points", "found",
+         "pitch_x", "pitch_y")
+
+
+def _table(m) -> dict:
+    t = {k: np.asarray(getattr(m, k)) for k in TABLE}
+    t["scalars"] = np.array([m.coplanarity.value, m.psf_variance, m.sigma_psf_variance,
+                             m.pitch_error_max, m.grid_angle_deg, m.substrate.offset,
+                             *m.substrate.normal, m.substrate.sigma_offset])
+    t["not_measured"] = np.array(repr(m.not_measured))
+    t["missing"] = np.array(repr(m.missing))
+    return t
+
+
+def _compare(t: dict, ref_path: Path) -> None:
+    ref = np.load(ref_path)
+    worst = 0.0
+    print(f"ball table against {ref_path}:")
+    for k in ref.files:
+        a, b = ref[k], t[k]
+        if a.shape != b.shape:
+            print(f"  {k}: shape {b.shape} against {a.shape}")
+            worst = np.inf
+        elif a.dtype.kind == "f":
+            same_nan = np.array_equal(np.isnan(a), np.isnan(b))
+            fin = np.isfinite(a) & np.isfinite(b)
+            d = float(np.max(np.abs(a[fin] - b[fin]))) if fin.any() else 0.0
+            worst = max(worst, d if same_nan else np.inf)
+            print(f"  {k:<20s} largest difference {d:.2e}"
+                  + ("" if same_nan else "  (NaN at other places)"))
+        elif not np.array_equal(a, b):
+            print(f"  {k}: differs")
+            worst = np.inf
+    print(f"  largest difference of any value: {worst:.2e} (mm, mm^2 or deg)")
+
+
+def _time(path: str, runs: int, table: str | None = None) -> dict:
     """The timing, in this process (with whatever telefringe is importable)."""
-    import numpy as np
 
     from telefringe.fringes.decode import decode
     from telefringe.fringes.images import fringe_free_image, scan_radiance
@@ -128,6 +174,8 @@ def _time(path: str, runs: int) -> dict:
         cpus.append(c)
     import numba
 
+    if table is not None:
+        np.savez(table, **_table(m))
     return {"wall_min": {k: min(w[k] for w in walls) for k in walls[0]},
             "wall_median": {k: statistics.median(w[k] for w in walls) for k in walls[0]},
             "cpu_median": {k: statistics.median(c[k] for c in cpus) for k in cpus[0]},
@@ -135,12 +183,13 @@ def _time(path: str, runs: int) -> dict:
             "threads": numba.get_num_threads()}
 
 
-def _run_timing(path: Path, runs: int, src: str | None) -> dict:
+def _run_timing(path: Path, runs: int, src: str | None, table: Path | None = None) -> dict:
     env = dict(os.environ)
     if src is not None:
         env["PYTHONPATH"] = str(Path(src) / "src")
-    out = subprocess.run([sys.executable, __file__, "--time", str(path), "--runs", str(runs)],
-                         check=True, capture_output=True, text=True, env=env)
+    extra = [] if table is None else ["--save-table", str(table)]
+    out = subprocess.run([sys.executable, __file__, "--time", str(path), "--runs", str(runs),
+                          *extra], check=True, capture_output=True, text=True, env=env)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -162,10 +211,15 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--cache", type=Path, default=None)
     ap.add_argument("--baseline", default=None, help="A telefringe source tree to compare.")
+    ap.add_argument("--table", type=Path, default=None,
+                    help="Save this tree's ball table here (.npz).")
+    ap.add_argument("--compare", type=Path, default=None,
+                    help="Compare this tree's ball table with one saved by --table.")
     ap.add_argument("--time", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--save-table", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.time is not None:
-        print(json.dumps(_time(args.time, args.runs)))
+        print(json.dumps(_time(args.time, args.runs, args.save_table)))
         return
     tmp = tempfile.TemporaryDirectory()
     folder = args.cache if args.cache is not None else Path(tmp.name)
@@ -178,8 +232,13 @@ def main() -> None:
     print(f"BGA cycle time, one HDR scan (36 images of 1280 x 1024, 8 bit) in memory, "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} (the machine may "
           f"be shared: compare minima)")
-    now = _run_timing(path, args.runs, None)
+    table = args.table
+    if table is None and args.compare is not None:
+        table = Path(tmp.name) / "table.npz"
+    now = _run_timing(path, args.runs, None, table)
     _print("this tree", now)
+    if args.compare is not None:
+        _compare(dict(np.load(table)), args.compare)
     if args.baseline is not None:
         base = _run_timing(path, args.runs, args.baseline)
         _print(f"baseline ({args.baseline})", base)

@@ -9,11 +9,13 @@ Steps, all through telefringe's public API:
 
 1. the rig: ``caliInfo.yml`` imported (:func:`telefringe.io.opencv_yaml.read_opencv_rig`;
    the projector's size from scan.json); the world frame is the camera's, so Z is depth;
-2. the camera's noise measured from the scan itself (photon transfer): each pixel's 12
-   samples are fitted by ``A + B cos(phi + 2 pi k / 12)``; the residual variance (9 degrees
-   of freedom) against ``A`` over the lit pixels gives read noise and gain, and so a
+2. the camera's noise measured from the scan itself
+   (:func:`telefringe.fringes.noise.estimate_noise`, what ``telefringe reconstruct`` does
+   by default): each pixel's 12 samples are fitted by ``A + B cos(phi + 2 pi k / 12)``
+   and the projector's harmonics; the residual variance (9 degrees of freedom) against
+   ``A`` gives read noise and gain, a
    :class:`~telefringe.fringes.phase.NoiseModel` of this camera (the default one describes
-   another camera);
+   another camera and understates this one's noise about 2x);
 3. decode + generic triangulation (:func:`telefringe.reconstruction.pipeline.reconstruct_scan`
    with that noise model): u_P only, so each camera ray meets the projector's surface of
    constant u_P; sigma_z per point from the decoded phase's uncertainty;
@@ -61,56 +63,6 @@ class Relief:
     figures: dict
 
 
-def noise_model_from_steps(stack, *, min_modulation: float = 10.0, max_value: float = 255.0):
-    """The camera's noise measured from one N-step phase group (photon transfer).
-
-    Parameters
-    ----------
-    stack : (N, rows, cols) array_like, DN, the N >= 4 phase-shifted images.
-    min_modulation : float, DN, pixels with a smaller fitted modulation are left out.
-    max_value : float, DN, pixels with a sample within 2 % of it (saturated) are left out.
-
-    Returns
-    -------
-    NoiseModel, and the per-pixel fit residual sigma (rows, cols) DN.
-    """
-    from telefringe.fringes.phase import NoiseModel
-
-    I = np.asarray(stack, dtype=float)
-    n = I.shape[0]
-    d = 2.0 * np.pi * np.arange(n) / n
-    A = np.column_stack([np.ones(n), np.cos(d), np.sin(d)])
-    flat = I.reshape(n, -1)
-    coef = np.linalg.lstsq(A, flat, rcond=None)[0]
-    var = ((flat - A @ coef) ** 2).sum(axis=0) / (n - 3)
-    mod = np.hypot(coef[1], coef[2])
-    use = (mod > min_modulation) & (flat.max(axis=0) < 0.98 * max_value)
-    # var = q^2 + gain * mean (shot-noise-like: this camera's read noise is below what the
-    # data resolve), fitted to the medians of bins of the mean (robust to the few pixels at
-    # edges and specks whose samples do not follow a sinusoid; the median of a variance
-    # estimate with n - 3 degrees of freedom is chi2.median(n - 3) / (n - 3) times the
-    # variance), weighted by the pixels per bin
-    from scipy.stats import chi2
-
-    a, v = coef[0][use], var[use]
-    idx = np.digitize(a, np.arange(0.0, max_value + 10.0, 10.0))
-    xs, ys, ws = [], [], []
-    for b in np.unique(idx):
-        sel = idx == b
-        if sel.sum() >= 200:
-            xs.append(np.median(a[sel]))
-            ys.append(np.median(v[sel]) / (chi2.median(n - 3) / (n - 3)))
-            ws.append(float(sel.sum()))
-    if not xs:
-        raise ValueError("too few lit pixels to measure the camera's noise")
-    xs, ys, ws = map(np.asarray, (xs, ys, ws))
-    q2 = 1.0 / 12.0
-    gain = float(np.sum(ws * (ys - q2) * xs) / np.sum(ws * xs * xs))
-    read = 0.0
-    return NoiseModel(read_noise=read, gain=float(max(gain, 0.0))), np.sqrt(var).reshape(
-        I.shape[1:])
-
-
 def _quadratic_residual(xyz):
     """Residual (n,) mm of z - a quadratic surface in x, y fitted by least squares."""
     x = xyz[:, 0] - xyz[:, 0].mean()
@@ -125,7 +77,7 @@ def measure_relief(folder=DATA) -> Relief:
     module notes). Raises InputError / DecodeError / TriangulationError like the CLI."""
     from scipy import ndimage
 
-    from telefringe.fringes.scan import PhaseGroup
+    from telefringe.fringes.noise import estimate_noise
     from telefringe.io.opencv_yaml import read_opencv_rig
     from telefringe.io.scan_json import read_scan
     from telefringe.reconstruction.pipeline import reconstruct_scan
@@ -135,9 +87,10 @@ def measure_relief(folder=DATA) -> Relief:
     man = scan.manifest
     rig = read_opencv_rig(folder / "caliInfo.yml",
                           projector_size=(man.projector_width, man.projector_height)).rig
-    k = next(i for i, g in enumerate(scan.manifest.groups) if isinstance(g, PhaseGroup))
-    noise, _ = noise_model_from_steps(scan.stacks[k], max_value=scan.max_value)
+    est = estimate_noise(scan)
+    noise = est.model
     rec = reconstruct_scan(scan, rig, noise=noise, with_height_map=False)
+    default = reconstruct_scan(scan, rig, noise="default", with_height_map=False).cloud
     cloud = rec.cloud
     lab, n = ndimage.label(cloud.mask)
     if n == 0:
@@ -171,6 +124,9 @@ def measure_relief(folder=DATA) -> Relief:
     figures = {
         "valid_points": int(cloud.mask.sum()), "tile_points": int(tile.sum()),
         "noise_read_DN": noise.read_noise, "noise_gain_DN_per_DN": noise.gain,
+        "noise_u_gain_DN_per_DN": float(np.sqrt(est.covariance[1, 1])),
+        "noise_chi2_dof": float(est.chi2_dof), "noise_misfit": float(est.misfit),
+        "noise_pixels": int(est.n_pixels),
         "z_p01_mm": float(np.percentile(z[tile], 1)),
         "z_p50_mm": float(np.percentile(z[tile], 50)),
         "z_p99_mm": float(np.percentile(z[tile], 99)),
@@ -186,6 +142,8 @@ def measure_relief(folder=DATA) -> Relief:
         "flat_points": int(flat.sum()),
         "flat_rms_residual_mm": float(np.sqrt(np.mean(res_flat ** 2))),
         "flat_rms_sigma_z_mm": float(np.sqrt(np.mean(sigma_z[flat] ** 2))),
+        "flat_rms_sigma_z_default_noise_mm": float(np.sqrt(np.mean(
+            np.asarray(default.sigma_z)[flat] ** 2))),
     }
     return Relief(rig, noise, cloud, u_p, np.asarray(rec.texture), tile, z, relief, figures)
 

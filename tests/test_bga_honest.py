@@ -120,10 +120,10 @@ def test_exports_show_not_measured_and_missing(tmp_path):
 def test_failed_point_spread_solve_warns_and_gives_nan(monkeypatch):
     cloud, present, offs, apex = bga_cloud(psf_s2=4e-4, seed=4)
 
-    def singular(terms, npar):
+    def singular(fits, npar):
         return np.zeros((npar, npar)), np.zeros(npar), 0.0, 0
 
-    monkeypatch.setattr(psf, "_schur_normal_equations", singular)
+    monkeypatch.setattr(psf, "_reduced_system", singular)
     with pytest.warns(PSFSolveWarning, match="could not be estimated"):
         m = measure_bga(cloud, NOM)
     assert np.isnan(m.psf_variance) and np.isnan(m.sigma_psf_variance)

@@ -1,14 +1,12 @@
 """The compiled fit kernels (telefringe.metrology._fit_kernels) against independent
-references: the sphere fit's Levenberg-Marquardt against scipy's least squares, the least
-median of squares plane's trials against their NumPy formulas."""
+references: the sphere fit's Levenberg-Marquardt against scipy's least squares (the
+plane's kernels: tests/test_plane_kernels.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from telefringe.metrology._fit_kernels import lmeds_trials
-from telefringe.metrology.planes import _lmeds_plane
 from telefringe.metrology.spheres import _sphere_geometric
 
 
@@ -46,25 +44,3 @@ def test_sphere_lm_kernel_matches_scipy_least_squares():
         np.testing.assert_allclose(J[:, :3], -np.sqrt(w)[:, None] * (p - cc)
                                    / np.linalg.norm(p - cc, axis=1)[:, None], atol=1e-14)
     assert worst < 1e-9  # mm (the noise is 1e-3 mm)
-
-
-def test_lmeds_trials_match_their_formulas():
-    rng = np.random.default_rng(2)
-    p = rng.normal(size=(500, 3)) * [10.0, 8.0, 0.01]
-    p[:100, 2] += 1.0  # outliers
-    triples = np.array([rng.choice(500, 3, replace=False) for _ in range(40)])
-    triples[5] = [7, 7, 8]  # degenerate: two equal points
-    n, d, med = np.empty((40, 3)), np.empty(40), np.empty(40)
-    lmeds_trials(p, triples, n, d, med)
-    assert med[5] == np.inf
-    for t in range(40):
-        if t == 5:
-            continue
-        a, b, c = p[triples[t]]
-        nn = np.cross(b - a, c - a)
-        nn /= np.linalg.norm(nn)
-        np.testing.assert_allclose(n[t], nn, atol=1e-15)
-        np.testing.assert_allclose(med[t], np.median((p @ nn - nn @ a) ** 2), rtol=1e-12)
-    # the plane found is the inliers' (z = 0 within their noise)
-    normal, offset, scale = _lmeds_plane(p, np.random.default_rng(0))
-    assert abs(abs(normal[2]) - 1) < 1e-4 and abs(offset) < 0.01 and scale < 0.02

@@ -262,6 +262,50 @@ def _tilt(det, ref=None) -> tuple[float, float]:
     return tilt, axis
 
 
+_MODELS = ("telecentric", "pinhole")
+_SIDES = ("left", "right", "top", "bottom")
+
+
+def _device_models(vrig, camera_model, projector_model, camera_pixel_size,
+                   projector_pixel_size, projector_side):
+    """calibration.json's device models, pixel sizes (mm, telecentric devices only) and
+    projector side: as given, else the sim rig's, else telecentric (calibration.json's
+    default). Raises InputError on a bad or missing value."""
+    from telefringe.io.errors import InputError
+
+    devices = {"camera": (camera_model, camera_pixel_size),
+               "projector": (projector_model, projector_pixel_size)}
+    models, sizes = {}, {}
+    for name, (model, size) in devices.items():
+        dev = None if vrig is None else (vrig.rig.camera if name == "camera"
+                                          else vrig.projector)
+        model = model or (dev.model if dev is not None else "telecentric")
+        if model not in _MODELS:
+            raise InputError(f"--{name}-model must be telecentric or pinhole, got {model!r}")
+        models[name] = model
+        if model == "pinhole":
+            if size is not None:
+                raise InputError(f"--{name}-pixel-size is for a telecentric {name}; a pinhole "
+                                 f"{name}'s scale comes from its focal length")
+            continue
+        if size is None and dev is not None and dev.model == "telecentric":
+            size = float(dev.intrinsics.du)
+        if size is None:
+            raise InputError(f"give --{name}-pixel-size (mm): calibration.json needs it for "
+                             f"a telecentric {name} (or --{name}-model pinhole)")
+        if not (math.isfinite(size) and size > 0):
+            raise InputError(f"--{name}-pixel-size must be > 0 mm, got {size}")
+        sizes[name] = (float(size), float(size))
+    side = projector_side
+    if side is None and vrig is not None:
+        from telefringe.simulate.calibration import projector_side as rig_side
+
+        side = rig_side(vrig)
+    if side is not None and side not in _SIDES:
+        raise InputError(f"--projector-side must be one of {', '.join(_SIDES)}, got {side!r}")
+    return models, sizes, side
+
+
 def calibration_cmd(
     out: Path = typer.Argument(..., help="New calibration-set folder."),
     camera: str = typer.Option(..., "--camera", help=_CAMERA_HELP),
@@ -271,10 +315,23 @@ def calibration_cmd(
     cols: int = typer.Option(None, "--cols", help="Circle columns of the plate."),
     pitch: float = typer.Option(None, "--pitch", help="Circle pitch, mm."),
     diameter: float = typer.Option(None, "--diameter", help="Circle diameter, mm."),
+    camera_model: str = typer.Option(None, "--camera-model",
+                                     help="telecentric or pinhole (sim: its rig's; else "
+                                          "telecentric). calibrate then fits this model."),
+    projector_model: str = typer.Option(None, "--projector-model",
+                                        help="telecentric or pinhole (sim: its rig's; else "
+                                             "telecentric)."),
     camera_pixel_size: float = typer.Option(None, "--camera-pixel-size",
-                                            help="Camera pixel size, mm (telecentric)."),
+                                            help="Camera pixel size, mm (telecentric only)."),
     projector_pixel_size: float = typer.Option(None, "--projector-pixel-size",
-                                               help="Projector pixel size, mm."),
+                                               help="Projector pixel size, mm (telecentric "
+                                                    "only)."),
+    projector_side: str = typer.Option(None, "--projector-side",
+                                       help="Where the projector is seen from the camera: "
+                                            "left, right, top or bottom (sim: its rig's); a "
+                                            "telecentric pair needs it to calibrate (the "
+                                            "shadow of an upright pin falls away from the "
+                                            "projector)."),
     steps: int = typer.Option(4, "--steps", help="Phase steps per group."),
     periods: str = typer.Option("1,8,64", "--periods", help="Period counts of the ladder."),
     axes: str = typer.Option("u,v", "--axes", help="u, v or u,v."),
@@ -289,10 +346,14 @@ def calibration_cmd(
     """Capture a calibration set: before each pose, wait for Enter (type q to stop),
     capture a verified scan of the circle plate, show whether the grid was found and how
     well the poses so far cover the field and the tilts; write the poses and
-    calibration.json. With the sim driver the virtual plate moves to its next pose.
+    calibration.json (each device's model, pixel sizes of the telecentric ones, the
+    projector's side where known). With the sim driver the virtual plate moves to its next
+    pose and the devices' models and side come from its rig.
 
     Example: printf '\\n\\n\\n\\n' | telefringe capture calibration sim_cal --camera sim
     --projector sim:preset=fast,scene=calibration,poses=5 --poses 4
+
+    A pinhole camera and projector: ... --camera-model pinhole --projector-model pinhole
     """
     import numpy as np
 
@@ -325,11 +386,9 @@ def calibration_cmd(
                                       diameter_mm=diameter or (t.diameter_mm if t else 1.5))
         except ValueError as exc:
             raise InputError(f"target: {exc}") from None
-        cps = camera_pixel_size or (vrig.camera.intrinsics.du if vrig else None)
-        pps = projector_pixel_size or (vrig.projector.intrinsics.du if vrig else None)
-        if cps is None or pps is None:
-            raise InputError("give --camera-pixel-size and --projector-pixel-size (mm): "
-                             "calibration.json needs them for telecentric devices")
+        models, sizes, side = _device_models(vrig, camera_model, projector_model,
+                                             camera_pixel_size, projector_pixel_size,
+                                             projector_side)
         groups = _pattern_groups(width=proj.info.width, height=proj.info.height, steps=steps,
                                  periods=periods, axes=axes, gray=0, complementary=True)
         lat = _latency_for(cam, proj, latency, latency_file)
@@ -385,9 +444,12 @@ def calibration_cmd(
                      f"{100 * cov:.0f} %; tilted poses {len(tilted)}, tilt axes in {dirs}/4 "
                      f"directions")
                 k += 1
-            man = CalibrationSetManifest(target=target, camera_pixel_size=(cps, cps),
-                                         projector_pixel_size=(pps, pps), poses=tuple(names),
-                                         reference_pose=names[0])
+            man = CalibrationSetManifest(target=target,
+                                         camera_pixel_size=sizes.get("camera"),
+                                         projector_pixel_size=sizes.get("projector"),
+                                         poses=tuple(names), reference_pose=names[0],
+                                         models=models, pixel_sizes=sizes,
+                                         projector_side=side)
             write_calibration_manifest(tmp, man)
     if len([t for t in tilts if t[0] >= 3.0]) < 2:
         err_console.print("[yellow]warning:[/yellow] fewer than 2 poses tilted by 3 deg or "

@@ -61,8 +61,12 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
         raise InputError(f"{scan_dir}: no valid point (is the object lit and in focus, and "
                          "does the rig belong to this scan?)")
     summary = {"scan": str(scan_dir), **cloud_summary(rec.cloud)}
+    if getattr(rec.coords, "noise", None) is not None:
+        summary["noise_model"] = rec.coords.noise.summary()
     if second is not None:
         summary["second_scan"] = str(second)
+        if getattr(rec.coords_2, "noise", None) is not None:
+            summary["noise_model_second"] = rec.coords_2.noise.summary()
     if rec.height is not None:
         summary["heightmap"] = {"pixel_mm": rec.height.pixel_mm,
                                 "shape": list(rec.height.z.shape)}
@@ -131,6 +135,14 @@ def reconstruct_cmd(
     method: str = typer.Option("auto", "--method",
                                help="Unwrapping: auto, hierarchical, heterodyne, "
                                     "number-theoretic or gray."),
+    noise_model: str = typer.Option("auto", "--noise-model",
+                                    help="Camera noise behind sigma: 'scan' measures it "
+                                         "from the scan's own phase steps (needs >= 4 "
+                                         "steps); 'calibrated' takes scan.json's "
+                                         "meta.camera_noise; 'default' a typical 8-bit "
+                                         "camera (often wrong by 2x); 'auto' (default): "
+                                         "calibrated, else scan, else default with a "
+                                         "warning."),
 ):
     """Reconstruct a scan into a 3D point cloud with per-point uncertainty.
 
@@ -150,6 +162,11 @@ def reconstruct_cmd(
         raise InputError(f"--max-residual must be > 0, got {max_residual}")
     if search_mm is not None and not (search_mm > 0 and second is not None):
         raise InputError(f"--search-mm needs --second and a value > 0, got {search_mm}")
+    from telefringe.fringes.noise import NOISE_SOURCES
+
+    if noise_model not in NOISE_SOURCES:
+        raise InputError(f"--noise-model must be one of {', '.join(NOISE_SOURCES)}, got "
+                         f"{noise_model!r}")
     # third-party leaves only, which nothing else imports meanwhile (two threads importing
     # modules that import each other could see each other's half-initialised modules)
     _prefetch("plyfile", "tifffile", "PIL.Image", "PIL.ImageDraw")
@@ -166,7 +183,7 @@ def reconstruct_cmd(
                          "camera's scan with --second")
     rec = reconstruct_to_folder(scan, rig_obj, output, force=force, pixel_mm=pixel_mm,
                                 max_residual=max_residual, ply=ply, gamma_correction=gamma,
-                                method=method, second=second,
+                                method=method, second=second, noise=noise_model,
                                 **({"search_mm": search_mm} if search_mm else {}), **extra)
     c = rec.cloud
     for name, ax in (getattr(rec.coords, "axes", None) or {}).items():
@@ -175,6 +192,9 @@ def reconstruct_cmd(
             src = "learned from the scan" if fit.n_samples else "the rig's model"
             detail(f"projector nonlinearity, axis {name}: {src}; peak error per group "
                    + ", ".join(f"{m.periods}: {m.peak:.4f} rad" for m in fit.models))
+    for coords in (rec.coords, rec.coords_2):
+        if getattr(coords, "noise", None) is not None:
+            _report_noise(coords.noise)
     info(f"{c.count} points ({c.count / c.mask.size:.1%} of the pixels)")
     import numpy as np
 
@@ -186,6 +206,27 @@ def reconstruct_cmd(
         r = c.residual[c.mask]
         detail(f"u/v consistency residual median {np.nanmedian(r):.3f} projector px")
     info(f"wrote {output}")
+
+
+def _report_noise(choice) -> None:
+    """One line on the camera noise model behind sigma (a warning for the default)."""
+    from rich.markup import escape
+
+    m = choice.model
+    if choice.source == "scan":
+        e = choice.estimate
+        lo, hi = e.intensity_range
+        u = float(e.relative_uncertainty(0.5 * (lo + hi)))
+        info(f"camera noise measured from the scan: sigma_I^2 = {e.a:.3g} + {e.b:.3g} I "
+             f"DN^2 ({lo:.0f}-{hi:.0f} DN, sigma_I known to {u:.1%}; "
+             f"{e.n_pixels} pixels)")
+    elif choice.source == "calibrated":
+        info(f"camera noise (calibrated, {escape(choice.note)}): read {m.read_noise:.3g} DN, "
+             f"gain {m.gain:.3g} DN/DN")
+    else:
+        why = f" ({choice.note})" if choice.note else ""
+        info(f"[yellow]warning:[/yellow] camera noise: the built-in typical camera"
+             f"{escape(why)}; sigma may be off by 2x")
 
 
 def register(app: typer.Typer) -> None:

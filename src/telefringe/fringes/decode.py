@@ -32,6 +32,7 @@ import numpy as np
 
 from telefringe.fringes.errors import DecodeError, LadderDecodeError
 from telefringe.fringes.fast import _MAX_MEMBERS, FastCoordinates, _fused, decode_axis_fast
+from telefringe.fringes.noise import resolve_noise
 from telefringe.fringes.nonlinearity import PhaseErrorFit, PhaseErrorModel, fit_phase_errors
 from telefringe.fringes.phase import (
     NoiseModel,
@@ -121,6 +122,8 @@ class ProjectorCoordinates:
     saturated, shadow, order_reliable : bool diagnostics (any axis).
     background : float64, DN, background A of the finest u (else v) group.
     axes : dict axis -> AxisCoordinates, the full per-axis results.
+    noise : telefringe.fringes.noise.NoiseChoice, the camera noise model used for the
+        sigmas and where it came from.
     """
 
     u_p: np.ndarray | None
@@ -134,6 +137,7 @@ class ProjectorCoordinates:
     order_reliable: np.ndarray
     background: np.ndarray
     axes: dict = field(default_factory=dict)
+    noise: object = None
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -395,8 +399,7 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
     if not sets:
         raise DecodeError(f"{scan.source}: no phase group on axis {axis}")
     length = scan.manifest.axis_length(axis)
-    scale = float(scan.max_value) / 255.0
-    noise = NoiseModel().scaled(scale) if noise is None else noise
+    noise = resolve_noise(scan, noise).model  # None: the default model, scaled
     min_mod = 0.02 * float(scan.max_value) if min_modulation is None else float(min_modulation)
     if not (np.isfinite(min_mod) and min_mod >= 0):
         raise DecodeError(f"min_modulation must be finite and >= 0, got {min_modulation!r}")
@@ -538,8 +541,11 @@ def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
         phase error from the ladder (needs >= 2 groups on the axis; no effect otherwise).
     min_modulation : float, DN; pixels whose modulation is below it in any group are
         invalid. Default ``0.02 * scan.max_value`` (5.1 DN for 8 bit).
-    noise : NoiseModel for the uncertainty (and Gray-code contrast); default
-        ``NoiseModel()`` scaled by ``max_value / 255``.
+    noise : NoiseModel, or "default" | "auto" | "scan" | "calibrated", the camera noise for
+        the uncertainty (and Gray-code contrast); see
+        :func:`telefringe.fringes.noise.resolve_noise` ("scan": measured from the scan's
+        own phase-step residuals, N >= 4). Default None: ``NoiseModel()`` scaled by
+        ``max_value / 255``, a typical camera, not necessarily this one.
     max_residual : float, rad, order-consistency tolerance of the unwrapping (pi/2).
     gray_min_contrast : float, DN, contrast below which a Gray bit counts as unread
         (default 3 sigma_I at the threshold level).
@@ -573,8 +579,9 @@ def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
                            for g in scan.manifest.groups)]
     if not axes_present:
         raise DecodeError(f"{scan.source}: the scan has no phase group")
+    choice = resolve_noise(scan, noise)
     res = {a: decode_axis(scan, a, method=method, gamma_correction=gamma_correction,
-                          min_modulation=min_modulation, noise=noise,
+                          min_modulation=min_modulation, noise=choice.model,
                           max_residual=max_residual, gray_min_contrast=gray_min_contrast,
                           exact=exact, phase_errors=phase_errors)
            for a in axes_present}
@@ -597,4 +604,4 @@ def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
         sigma_u_p=None if u is None else u.sigma,
         sigma_v_p=None if v is None else v.sigma,
         saturated=saturated, shadow=shadow, order_reliable=reliable,
-        background=first.background, axes=res)
+        background=first.background, axes=res, noise=choice)

@@ -1,9 +1,8 @@
 """Compiled kernels of the fits (private): the geometric sphere fit's Levenberg-Marquardt
-iteration (:func:`telefringe.metrology.spheres._sphere_geometric`) and the least median
-of squares plane's trials (:func:`telefringe.metrology.planes._lmeds_plane`). The same
-arithmetic as the NumPy forms they replace, in float64 without fastmath, so that a BGA's
-hundreds of small caps and a plane's hundreds of trials are not bound by NumPy's per-call
-overhead (the trials also run in parallel)."""
+iteration (:func:`telefringe.metrology.spheres._sphere_geometric`) and the robust
+fixed-radius sphere fit. The same arithmetic as the NumPy forms they replace, in float64
+without fastmath, so that a BGA's hundreds of small caps are not bound by NumPy's
+per-call overhead. (The plane's kernels are in ``_plane_kernels``.)"""
 
 from __future__ import annotations
 
@@ -110,44 +109,6 @@ def sphere_lm(p, w, x0, npar, max_iter):
             break
     _jac(d, dist, sw, npar, J)
     return x, f, J
-
-
-@nb.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
-def lmeds_trials(sub, triples, normals, offsets, medians):
-    """Per trial t: the plane through the points ``sub[triples[t]]`` (unit normal, offset
-    n . p0) and the median of the squared distances of every point of ``sub`` (m, 3) to
-    it; ``medians[t]`` is inf where the three points are collinear (the cross product's
-    norm below 1e-12 max(1, max |coordinate|)^2)."""
-    m = sub.shape[0]
-    for t in nb.prange(triples.shape[0]):
-        a = sub[triples[t, 0]]
-        b = sub[triples[t, 1]]
-        c = sub[triples[t, 2]]
-        u0, u1, u2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-        v0, v1, v2 = c[0] - a[0], c[1] - a[1], c[2] - a[2]
-        n0 = u1 * v2 - u2 * v1
-        n1 = u2 * v0 - u0 * v2
-        n2 = u0 * v1 - u1 * v0
-        nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        big = 1.0
-        for k in range(3):
-            big = max(big, abs(a[k]), abs(b[k]), abs(c[k]))
-        if nn < 1e-12 * big * big:
-            medians[t] = np.inf
-            continue
-        n0 /= nn
-        n1 /= nn
-        n2 /= nn
-        d = n0 * a[0] + n1 * a[1] + n2 * a[2]
-        r2 = np.empty(m)
-        for i in range(m):
-            r = sub[i, 0] * n0 + sub[i, 1] * n1 + sub[i, 2] * n2 - d
-            r2[i] = r * r
-        normals[t, 0] = n0
-        normals[t, 1] = n1
-        normals[t, 2] = n2
-        offsets[t] = d
-        medians[t] = np.median(r2)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")

@@ -99,40 +99,23 @@ class PlaneFit(Plane):
         return float(np.sqrt(self.sigma_offset**2 + q @ self.tilt_covariance @ q))
 
 
-def _tls_plane(P: np.ndarray, w: np.ndarray):
-    """Weighted total least squares plane of points P (3, n) (coordinate rows, for
-    contiguous BLAS products): (normal, centroid, eigenvalues)."""
-    sw = w.sum()
-    c = (P @ w) / sw
-    Q = P - c[:, None]
-    S = (Q * w) @ Q.T
-    evals, evecs = np.linalg.eigh(S)
-    n = evecs[:, 0]
-    if n[2] < 0:
-        n = -n
-    return n, c, evals
-
-
 def _lmeds_plane(p: np.ndarray, rng: np.random.Generator, *, trials: int = 300,
                  max_points: int = 20000):
-    """Least-median-of-squares plane from random triples (breakdown 50 %); the trials'
-    medians in a compiled, parallel loop
-    (:func:`telefringe.metrology._fit_kernels.lmeds_trials`), the first best one kept."""
-    from telefringe.metrology._fit_kernels import lmeds_trials
+    """Least-median-of-squares plane from random triples (breakdown 50 %): the first
+    trial of the smallest median (:func:`telefringe.metrology._plane_kernels.lmeds_best`,
+    which skips the medians of trials that cannot win). Returns (normal (3,), offset,
+    sqrt(median squared distance))."""
+    from telefringe.metrology._plane_kernels import lmeds_best
 
     sub = p if p.shape[0] <= max_points else p[rng.choice(p.shape[0], max_points,
                                                           replace=False)]
     triples = np.array([rng.choice(sub.shape[0], 3, replace=False) for _ in range(trials)],
                        dtype=np.int64).reshape(trials, 3)
-    normals = np.empty((trials, 3))
-    offsets = np.empty(trials)
-    medians = np.empty(trials)
-    lmeds_trials(np.ascontiguousarray(sub, dtype=np.float64), triples, normals, offsets,
-                 medians)
-    if not np.any(np.isfinite(medians)):
+    t, normal, offset, median = lmeds_best(np.ascontiguousarray(sub, dtype=np.float64),
+                                           triples)
+    if t < 0:
         raise MetrologyError("the points are collinear: no plane")
-    t = int(np.argmin(medians))
-    return normals[t].copy(), float(offsets[t]), np.sqrt(medians[t])
+    return normal, float(offset), np.sqrt(median)
 
 
 def fit_plane(points, *, weights=None, robust: bool = False, seed: int = 0,
@@ -164,40 +147,51 @@ def fit_plane(points, *, weights=None, robust: bool = False, seed: int = 0,
     MetrologyError
         Fewer than 3 points, collinear points, or fewer than 3 inliers.
     """
+    from telefringe.metrology._plane_kernels import (
+        kept_moments,
+        plane_residuals,
+        plane_statistics,
+        residuals_of_inliers,
+        tukey_moments,
+    )
+
     p, w0, finite = _points_and_weights(points, weights, sigma_weights=True)
     n_all = p.shape[0]
     finite &= np.isfinite(w0) & (w0 >= 0)
-    pf = p[finite]
+    pf = np.ascontiguousarray(p[finite], dtype=np.float64)  # (n, 3)
     wf = w0[finite]
     if pf.shape[0] < 3 or np.count_nonzero(wf) < 3:
         raise MetrologyError(f"a plane needs at least 3 points, got {pf.shape[0]}")
-    wf = wf / wf.mean()
-    P = np.ascontiguousarray(pf.T)  # (3, n)
+    wf = np.ascontiguousarray(wf / wf.mean(), dtype=np.float64)
     keep = np.ones(pf.shape[0], dtype=bool)
+    # every pass over the points is compiled (telefringe.metrology._plane_kernels): a
+    # BGA's substrate has ~150 000 points and its robust fit ~10 rounds
     if robust:
         rng = np.random.default_rng(seed)
         n, d, med = _lmeds_plane(pf, rng)
-        r = n @ P - d
+        r = plane_residuals(pf, n, d)
         scale = max(_MAD * np.median(np.abs(r)), 1e-12)
-        extent = float(np.max(np.ptp(P, axis=1))) + 1e-12
+        extent = float(np.max(pf.max(axis=0) - pf.min(axis=0))) + 1e-12
+        buf = np.empty(pf.shape[0])
         for _ in range(max_iter):
-            u = r / (_TUKEY_C * scale)
-            wt = np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
-            wr = wf * wt
-            if np.count_nonzero(wr) < 3:
+            # one round: the Tukey-weighted plane, then its residuals (r) and the
+            # absolute residuals of the round's inliers (buf[:n_in]) for the new scale
+            cs = _TUKEY_C * scale
+            n_pos, c, S = tukey_moments(pf, wf, r, cs)
+            if n_pos < 3:
                 raise MetrologyError("robust plane fit: fewer than 3 inliers")
-            n_new, c, _ = _tls_plane(P, wr)
+            n_new = np.linalg.eigh(S)[1][:, 0]
+            if n_new[2] < 0:
+                n_new = -n_new
             d_new = float(n_new @ c)
-            r = n_new @ P - d_new
-            inl = wt > 0
+            n_in = residuals_of_inliers(pf, n_new, d_new, r, cs, buf)
             # robust scale from at most ~200k of the inliers (a regular subsample)
-            ri = r[inl]
+            ri = buf[:n_in]
             ri = ri[::max(1, ri.size // 200_000)]
-            new_scale = max(_MAD * np.median(np.abs(ri)), 1e-12)
+            new_scale = max(_MAD * np.median(ri), 1e-12)
             # converged when the plane moves by less than 1e-3 of its own standard
             # uncertainty (offset scale / sqrt(n); tilt that over the points' extent)
-            n_in = max(int(np.count_nonzero(inl)), 1)
-            tol = 1e-3 * new_scale / np.sqrt(n_in)
+            tol = 1e-3 * new_scale / np.sqrt(max(n_in, 1))
             done = (abs(d_new - d) < tol and np.linalg.norm(n_new - n) * extent < tol
                     and abs(new_scale - scale) < 1e-3 * scale)
             n, d, scale = n_new, d_new, new_scale
@@ -206,31 +200,32 @@ def fit_plane(points, *, weights=None, robust: bool = False, seed: int = 0,
         keep = np.abs(r) < _TUKEY_C * scale
         if np.count_nonzero(keep) < 3:
             raise MetrologyError("robust plane fit: fewer than 3 inliers")
-    Pk = P if robust is False else P[:, keep]
-    wk = wf[keep]
-    n, c, evals = _tls_plane(Pk, wk)
+    # weighted total least squares on the kept points
+    c, S = kept_moments(pf, wf, keep)
+    evals, evecs = np.linalg.eigh(S)
+    n = evecs[:, 0]
+    if n[2] < 0:
+        n = -n
     if evals[1] <= 1e-12 * max(evals[2], 1e-300):
         raise MetrologyError("the points are collinear: no plane")
     d = float(n @ c)
-    r = n @ Pk - d
-    nk = Pk.shape[1]
-    wk_n = wk / wk.mean()
-    dof = max(nk - 3, 1)
-    s2 = float(np.sum(wk_n * r * r) / dof)
     T = _tangent_basis(n)
-    q = T @ (Pk - c[:, None])  # (2, nk)
-    M = (q * wk_n) @ q.T
+    nk, sw, swr2, sr2, rmin, rmax, M = plane_statistics(pf, wf, keep, n, d, c, T)
+    # weights normalised to mean 1 over the kept points
+    mean_w = sw / nk
+    dof = max(nk - 3, 1)
+    s2 = float(swr2 / mean_w / dof)
     try:
-        tilt_cov = s2 * np.linalg.inv(M)
+        tilt_cov = s2 * np.linalg.inv(M / mean_w)
     except np.linalg.LinAlgError:
         raise MetrologyError("the points are collinear: no plane") from None
     inliers = np.zeros(n_all, dtype=bool)
     idx = np.flatnonzero(finite)
     inliers[idx[keep]] = True
-    return PlaneFit(n, d, centroid=c, rms=float(np.sqrt(np.mean(r * r))),
-                    flatness=float(r.max() - r.min()), n_points=int(n_all),
+    return PlaneFit(n, d, centroid=c, rms=float(np.sqrt(sr2 / nk)),
+                    flatness=float(rmax - rmin), n_points=int(n_all),
                     n_inliers=int(nk), inliers=inliers, tangent=T, tilt_covariance=tilt_cov,
-                    sigma_offset=float(np.sqrt(s2 / wk_n.sum())))
+                    sigma_offset=float(np.sqrt(s2 / (sw / mean_w))))
 
 
 @dataclass(frozen=True)

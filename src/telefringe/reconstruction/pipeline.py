@@ -96,7 +96,12 @@ def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
     pixel_mm : grid spacing of the height map (default: the camera's footprint).
     with_height_map : bool, resample the cloud on a regular XY grid.
     **decode_options : passed to :func:`telefringe.decode.decode` (``method``,
-        ``gamma_correction``, ``min_modulation``, ``phase_errors``, ...). A
+        ``gamma_correction``, ``min_modulation``, ``phase_errors``, ``noise``, ...).
+        ``noise`` defaults to ``"auto"`` here: the camera noise behind sigma is the scan's
+        calibrated one (scan.json ``meta.camera_noise``), else measured from the scan's own
+        phase steps, else the decoder's typical camera (see
+        :func:`telefringe.fringes.noise.resolve_noise`; the choice is in
+        ``coords.noise``). A
         :class:`~telefringe.calibrate.RigCalibration` that learned the projector's
         nonlinearity (``phase_errors``) gives it to the decoder unless ``phase_errors`` is
         passed here (``phase_errors=None`` learns it from the scan instead).
@@ -114,6 +119,7 @@ def reconstruct_scan(scan, rig: Rig, *, max_residual: float | None = 1.0,
     learned = getattr(rig, "phase_errors", None)  # a RigCalibration's projector model
     if learned and "phase_errors" not in decode_options:
         decode_options = {**decode_options, "phase_errors": learned}
+    decode_options = {"noise": "auto", **decode_options}
     rig = _as_rig(rig)
     if rig.projector is None:
         raise TriangulationError("the rig has no calibrated projector: a one-camera scan "
@@ -168,6 +174,7 @@ def reconstruct_stereo_scans(scan_1, scan_2, rig: Rig, *, max_residual: float | 
     learned = getattr(rig, "phase_errors", None)
     if learned and "phase_errors" not in decode_options:
         decode_options = {**decode_options, "phase_errors": learned}
+    decode_options = {"noise": "auto", **decode_options}
     rig = _as_rig(rig)
     names = rig.camera_names
     if len(names) < 2:

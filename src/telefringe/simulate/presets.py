@@ -402,8 +402,15 @@ def crop_camera(vrig: VirtualRig, *, col0: int, row0: int, width: int, height: i
             and col0 + width <= k.width and row0 + height <= k.height):
         raise ValueError(f"window {width} x {height} at ({col0}, {row0}) is not inside the "
                          f"{k.width} x {k.height} camera")
-    intr = replace(k, u0=k.u0 - col0, v0=k.v0 - row0, width=int(width), height=int(height))
-    cam = vrig.camera.with_(intrinsics=intr)
+    cam = vrig.camera
+    if cam.model == "telecentric":
+        intr = replace(k, u0=k.u0 - col0, v0=k.v0 - row0, width=int(width),
+                       height=int(height))
+        cam = cam.with_(intrinsics=intr)
+    else:  # pinhole: the principal point moves with the window
+        intr = replace(k, cx=k.cx - col0, cy=k.cy - row0, width=int(width),
+                       height=int(height))
+        cam = cam.__class__(intr, cam.R_dev_world, cam.t_dev)
     return replace(vrig, name=f"{vrig.name}[{col0}:{col0 + width},{row0}:{row0 + height}]",
                    rig=Rig(cam, vrig.projector))
 

@@ -21,9 +21,11 @@ Timing model (all on one :class:`VirtualClock`, integer nanoseconds):
 
 Address options (``--projector sim:KEY=VALUE,...``, ``--camera sim:KEY=VALUE,...``):
 
-projector (and the rig): ``preset`` (fast, paper), ``crop`` (``WxH+X+Y``: read out only
-that window of the virtual camera's sensor, for small fast rigs), ``scene`` (plate, steps,
-sphere, bga, tilted-plane, calibration), ``z`` (mm), ``poses`` (calibration poses), ``seed``,
+projector (and the rig): ``preset`` (fast, paper, mixed, macro), ``crop`` (``WxH+X+Y``:
+read out only that window of the virtual camera's sensor, for small fast rigs), ``bin``
+(N: the camera's pixels binned N x N, the field unchanged; applied before ``crop``),
+``scene`` (plate, steps, sphere, bga, tilted-plane, calibration), ``z`` (mm), ``poses``
+(calibration poses), ``seed``,
 ``refresh`` (Hz), ``latency`` (s), ``jitter`` (s, uniform extra latency per show),
 ``late`` (shows whose light comes one refresh period late);
 camera: ``drop`` (frames that never arrive), ``incomplete`` (buffers with lost packets),
@@ -65,7 +67,7 @@ __all__ = ["VirtualClock", "Fault", "SimConfig", "SimRig", "SimProjector", "SimC
 
 _NS = 1_000_000_000
 _PROJECTOR_KEYS = {"preset", "scene", "z", "poses", "seed", "refresh", "latency", "jitter",
-                   "late", "crop"}
+                   "late", "crop", "bin"}
 _CAMERA_KEYS = {"drop", "incomplete", "stuck", "missed", "flash", "id_start", "readout"}
 
 
@@ -136,6 +138,7 @@ class SimConfig:
 
     preset: str = "fast"
     crop: str = ""
+    bin: int = 1
     scene: str = "plate"
     z: float = 0.0
     poses: int = 8
@@ -183,7 +186,7 @@ def parse_address(address: str, *, kind: str, base: SimConfig | None = None) -> 
                 changes[key] = Fault.parse(key, value)
             elif key in ("preset", "scene", "crop"):
                 changes[key] = value.strip()
-            elif key in ("poses", "seed", "id_start"):
+            elif key in ("poses", "seed", "id_start", "bin"):
                 changes[key] = int(value)
             else:
                 changes[key] = float(value)
@@ -198,6 +201,8 @@ def parse_address(address: str, *, kind: str, base: SimConfig | None = None) -> 
         v = getattr(cfg, key)
         if not (math.isfinite(v) and 0 <= v <= 10):
             raise DeviceError(f"sim: {key} must be 0..10 s, got {v}")
+    if not 1 <= cfg.bin <= 64:
+        raise DeviceError(f"sim projector: bin must be 1..64, got {cfg.bin}")
     if cfg.poses < 4 and cfg.scene == "calibration":
         raise DeviceError(f"sim projector: poses must be >= 4, got {cfg.poses}")
     return cfg
@@ -237,6 +242,10 @@ class SimRig:
         self.clock = VirtualClock()
         try:
             self.vrig = get_preset(config.preset)
+            if config.bin > 1:
+                from telefringe.simulate.presets import bin_camera_any
+
+                self.vrig = bin_camera_any(self.vrig, config.bin)
             if config.crop:
                 from telefringe.simulate.presets import crop_camera
 
@@ -249,8 +258,11 @@ class SimRig:
                               else f"sim: {exc}") from None
         self.poses = ()
         if config.scene == "calibration":
-            self.poses = simulate_calibration_poses(self.vrig, n_poses=config.poses,
-                                                    seed=config.seed)
+            try:
+                self.poses = simulate_calibration_poses(self.vrig, n_poses=config.poses,
+                                                        seed=config.seed)
+            except ValueError as exc:  # e.g. a crop too small for the plate
+                raise DeviceError(f"sim: {exc}") from None
         self.pose_index = 0
         self.scene = self._make_scene(0)
         self._geom = None
@@ -470,7 +482,8 @@ class SimCamera:
     def __init__(self, rig: SimRig, config: SimConfig, address: str = ""):
         self.rig = rig
         self.config = config
-        rows, cols = rig.vrig.camera.intrinsics.shape
+        k = rig.vrig.camera.intrinsics
+        rows, cols = int(k.height), int(k.width)
         self.info = CameraInfo(driver="sim", model=f"virtual camera ({config.preset} rig)",
                                serial=f"SIMC-{config.seed:04d}", vendor="telefringe",
                                width=int(cols), height=int(rows),

@@ -42,9 +42,10 @@ def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
 
     A first robust fit with the nominal radius gives each point's surface normal; points
     whose surface is tilted more than ``max_view_angle_deg`` from facing the camera
-    (``view``: unit vector toward the camera) are dropped (the pixel footprint and the
-    camera's point spread average a range of depths there, and the average of a convex
-    surface lies below it, increasingly so as 1 / cos^3 of the tilt). The final fit
+    (``view``: unit vector toward the camera, (3,), or (m, 3) per point) are dropped
+    (the pixel footprint and the camera's point spread average a range of depths there,
+    and the average of a convex surface lies below it, increasingly so as 1 / cos^3 of
+    the tilt). The final fit
     weights each point by 1 / sigma_r^2, sigma_r = sigma_line * cos(tilt) its
     uncertainty along the radius (points move along the viewing direction only). The
     radius is free when the cap determines it (0.7 D < diameter < 1.4 D and
@@ -54,6 +55,9 @@ def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
     if weighted:
         ok &= np.isfinite(sig) & (sig > 0)
     pts, sig = pts[ok], sig[ok]
+    view = np.asarray(view, dtype=np.float64)
+    if view.ndim == 2:
+        view = view[ok]
     if pts.shape[0] < 10:
         return CapFit(None, "too_few_points")
     w = None
@@ -61,7 +65,8 @@ def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
         f0 = fit_sphere(pts, robust=True, radius=D / 2)
         nn = pts - f0.centre
         nn /= np.linalg.norm(nn, axis=1)[:, None]
-        cos_t = np.clip(nn @ view, 1e-3, 1.0)
+        cos_t = np.clip(nn @ view if view.ndim == 1 else np.einsum("ij,ij->i", nn, view),
+                        1e-3, 1.0)
         keep = np.ones(pts.shape[0], dtype=bool)
         if max_view_angle_deg is not None:
             keep = cos_t >= np.cos(np.radians(max_view_angle_deg))
@@ -86,14 +91,16 @@ def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
     return CapFit(f, None, radius_free=free)
 
 
-def fit_caps_alone(caps, view: np.ndarray, D: float, *, weighted: bool,
+def fit_caps_alone(caps, view, D: float, *, weighted: bool,
                    max_view_angle_deg: float | None, fixed_radius: bool) -> list[CapFit]:
     """Each cap of ``caps`` (list of (pts (m, 3), sigma_line (m,), _)) fitted on its own
-    (see :func:`_fit_cap`); a fit that raises is reported as ``fit_failed``."""
+    (see :func:`_fit_cap`); ``view``: (3,) toward the camera for every point, or a list
+    of (m, 3) per cap. A fit that raises is reported as ``fit_failed``."""
     out = []
-    for pts, sig, _ in caps:
+    for k, (pts, sig, _) in enumerate(caps):
+        v = view[k] if isinstance(view, list) else view
         try:
-            out.append(_fit_cap(pts, sig, view, D, weighted=weighted,
+            out.append(_fit_cap(pts, sig, v, D, weighted=weighted,
                                 max_view_angle_deg=max_view_angle_deg,
                                 fixed_radius=fixed_radius))
         except MetrologyError:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from telefringe.metrology._common import MetrologyError, _poly_design, _tangent_basis
+from telefringe.metrology._common import MetrologyError, _tangent_basis
 from telefringe.reconstruction.cloud import PointCloud
 
 
@@ -14,89 +14,38 @@ def _gauss_spots(wins: np.ndarray, u0: float, v0: float, *, max_iter: int = 60):
 
     ``wins`` (n, n0, n1): each is fitted with a * ex(u) * ey(v) + b, ex the integral over
     the pixel of a unit Gaussian of centre x and sigma sg (error functions), by
-    Levenberg-Marquardt run on all windows at once (analytic Jacobian; bounds a >= 0,
-    -1 <= x <= n1, -1 <= y <= n0, 0.2 <= sg <= 0.4 min(n0, n1) by projection). Returns
-    a list of (x, y, cov_xy (2, 2), sg) in window pixel coordinates, or None where the
-    fit failed or the spot is not clear (peak below 10 residual sigma, or within a pixel
-    of the window's edge).
+    Levenberg-Marquardt, one window per thread (analytic Jacobian; bounds a >= 0,
+    -1 <= x <= n1, -1 <= y <= n0, 0.2 <= sg <= 0.4 min(n0, n1) by projection;
+    :func:`telefringe.metrology.bga._kernels.gauss_spots`). Returns a list of (x, y,
+    cov_xy (2, 2), sg) in window pixel coordinates, or None where the fit failed or the
+    spot is not clear (peak below 10 residual sigma, or within a pixel of the window's
+    edge).
     """
-    from scipy.special import erf
+    from telefringe.metrology.bga._kernels import gauss_spots
 
-    W = np.asarray(wins, dtype=np.float64)
+    W = np.ascontiguousarray(wins, dtype=np.float64)
     n, n0, n1 = W.shape
-    uu = np.arange(n1, dtype=np.float64)
-    vv = np.arange(n0, dtype=np.float64)
-    r2 = np.sqrt(2.0)
-    c_pdf = 1.0 / np.sqrt(2.0 * np.pi)
     lo = np.array([0.0, -1.0, -1.0, 0.2, -np.inf])
     hi = np.array([np.inf, n1, n0, 0.4 * min(n0, n1), np.inf])
-
-    def axis_terms(c, sg, grid):
-        # (n, m): pixel integral of the unit Gaussian and its derivatives in c and sg
-        zp = (grid[None, :] + 0.5 - c[:, None]) / (r2 * sg[:, None])
-        zm = (grid[None, :] - 0.5 - c[:, None]) / (r2 * sg[:, None])
-        ep, em = np.exp(-zp * zp), np.exp(-zm * zm)
-        e = 0.5 * (erf(zp) - erf(zm))
-        de_dc = -c_pdf / sg[:, None] * (ep - em)
-        de_ds = -(r2 * c_pdf) / sg[:, None] * (zp * ep - zm * em)
-        return e, de_dc, de_ds
-
-    def model_jac(P):
-        a, x, y, sg, b = P.T
-        ex, dex, dsx = axis_terms(x, sg, uu)
-        ey, dey, dsy = axis_terms(y, sg, vv)
-        g = ey[:, :, None] * ex[:, None, :]  # (n, n0, n1)
-        m = a[:, None, None] * g + b[:, None, None]
-        J = np.stack([g, a[:, None, None] * ey[:, :, None] * dex[:, None, :],
-                      a[:, None, None] * dey[:, :, None] * ex[:, None, :],
-                      a[:, None, None] * (ey[:, :, None] * dsx[:, None, :]
-                                          + dsy[:, :, None] * ex[:, None, :]),
-                      np.ones_like(g)], axis=-1)
-        return m.reshape(n, -1), J.reshape(n, -1, 5)
-
     b0 = W.reshape(n, -1).min(axis=1)
-    P = np.column_stack([(W.reshape(n, -1).max(axis=1) - b0) * 2 * np.pi * 0.7**2,
-                         np.full(n, float(u0)), np.full(n, float(v0)), np.full(n, 0.7), b0])
-    Y = W.reshape(n, -1)
-    m, J = model_jac(P)
-    r = m - Y
-    cost = np.sum(r * r, axis=1)
-    lam = np.full(n, 1e-3)
-    done = np.zeros(n, dtype=bool)
-    eye = np.eye(5)
-    for _ in range(max_iter):
-        H = np.einsum("nki,nkj->nij", J, J)
-        g = np.einsum("nki,nk->ni", J, r)
-        A = H + lam[:, None, None] * (np.einsum("nii->ni", H)[:, :, None] * eye)
-        try:
-            step = -np.linalg.solve(A, g[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            break
-        Pn = np.clip(P + step, lo, hi)
-        mn, Jn = model_jac(Pn)
-        rn = mn - Y
-        cn = np.sum(rn * rn, axis=1)
-        better = (cn < cost) & ~done
-        small = np.max(np.abs(Pn - P) / (np.abs(P) + 1e-3), axis=1) < 1e-10
-        P[better], r[better], J[better] = Pn[better], rn[better], Jn[better]
-        done |= better & ((cost - cn) <= 1e-12 * cost) | small
-        cost = np.where(better, cn, cost)
-        lam = np.where(better, np.maximum(lam / 10, 1e-12), np.minimum(lam * 10, 1e12))
-        done |= lam >= 1e12
-        if done.all():
-            break
+    P0 = np.column_stack([(W.reshape(n, -1).max(axis=1) - b0) * 2 * np.pi * 0.7**2,
+                          np.full(n, float(u0)), np.full(n, float(v0)), np.full(n, 0.7),
+                          b0])
+    P, cost = np.empty((n, 5)), np.empty(n)
+    JtJ, ok = np.empty((n, 5, 5)), np.empty(n, dtype=bool)
+    gauss_spots(W, np.ascontiguousarray(P0), lo, hi, int(max_iter), P, cost, JtJ, ok)
     out = []
     dof = max(n0 * n1 - 5, 1)
     for k in range(n):
         a, x, y, sg, b = P[k]
         s2r = float(cost[k]) / dof
         try:
-            cov = s2r * np.linalg.inv(J[k].T @ J[k])
+            cov = s2r * np.linalg.inv(JtJ[k])
         except np.linalg.LinAlgError:
             out.append(None)
             continue
         peak = a / (2 * np.pi * sg * sg)
-        if not (np.all(np.isfinite(P[k])) and peak > 10.0 * np.sqrt(s2r)
+        if not (ok[k] and np.all(np.isfinite(P[k])) and peak > 10.0 * np.sqrt(s2r)
                 and 1.0 <= x <= n1 - 2 and 1.0 <= y <= n0 - 2):
             out.append(None)
             continue
@@ -140,7 +89,8 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
         sub = np.where(reg, image[sl], -np.inf)
         if not np.any(np.isfinite(sub)):
             continue
-        pi, pj = np.unravel_index(int(np.nanargmax(np.nan_to_num(sub, nan=-np.inf))),
+        # (no NaN left: argmax gives nanargmax's first largest)
+        pi, pj = np.unravel_index(int(np.argmax(np.nan_to_num(sub, nan=-np.inf))),
                                   sub.shape)
         pv, pu = sl[0].start + pi, sl[1].start + pj
         if not (h <= pv < rows - h and h <= pu < cols - h):
@@ -151,54 +101,104 @@ def _refine_by_highlights(cloud: PointCloud, image: np.ndarray, regions, centre,
         found.append((k, pv, pu, win))
     spots = (_gauss_spots(np.stack([f[3] for f in found]), float(h), float(h))
              if found else [])
-    for (k, pv, pu, _), g in zip(found, spots, strict=True):
-        if g is None:
-            continue
-        x, y, cov_uv, _ = g
-        du = np.arange(-h, h + 1, dtype=np.float64) - (x - h)
-        dv = np.arange(-h, h + 1, dtype=np.float64) - (y - h)
-        DV, DU = np.meshgrid(dv, du, indexing="ij")
-        P = cloud.xyz[pv - h:pv + h + 1, pu - h:pu + h + 1].reshape(-1, 3)
-        ok = np.all(np.isfinite(P), axis=1)
-        if np.count_nonzero(ok) < 12:
-            continue
-        # the camera lines of the window's pixels: their points' components across the
-        # viewing direction, a smooth (affine up to distortion) function of the pixel
-        Q = P[ok] - np.outer(P[ok] @ d, d)
-        A = _poly_design(DU.ravel()[ok], DV.ravel()[ok], 2)
-        coef, *_ = np.linalg.lstsq(A, Q, rcond=None)
-        J = coef[1:3].T  # (3, 2): d q / d (u, v)
-        q = coef[0]
-        # front intersection of the line q + t d with the sphere
-        w = q - centre[k]
-        b = float(w @ d)
-        disc = b * b - (float(w @ w) - radius[k] ** 2)
-        if not disc >= 0:
-            continue
-        t = -b - np.sqrt(disc)
-        lines[k] = q
-        hl[k] = q + t * d
-        hl_cov[k] = J @ cov_uv @ J.T + sig_surface[k] ** 2 * np.outer(d, d)
+    fitted = [(f, g) for f, g in zip(found, spots, strict=True) if g is not None]
+    if fitted:
+        # (compiled, one ball per thread: the NumPy steps are in its docstring)
+        from telefringe.metrology.bga._kernels import highlight_lines
+
+        ks = np.array([f[0] for f, _ in fitted], dtype=np.int64)
+        P = np.ascontiguousarray(np.stack([
+            cloud.xyz[pv - h:pv + h + 1, pu - h:pu + h + 1] for (_, pv, pu, _), _ in fitted]),
+            dtype=np.float64)
+        n_f = ks.size
+        out_l, out_h = np.full((n_f, 3), np.nan), np.full((n_f, 3), np.nan)
+        out_c = np.full((n_f, 3, 3), np.nan)
+        highlight_lines(P, np.array([g[0] for _, g in fitted], dtype=np.float64),
+                        np.array([g[1] for _, g in fitted], dtype=np.float64),
+                        np.ascontiguousarray(d), np.ascontiguousarray(centre[ks],
+                                                                      dtype=np.float64),
+                        np.ascontiguousarray(radius[ks], dtype=np.float64),
+                        np.ascontiguousarray(np.stack([g[2] for _, g in fitted]),
+                                             dtype=np.float64),
+                        np.ascontiguousarray(np.asarray(sig_surface)[ks], dtype=np.float64),
+                        out_l, out_h, out_c)
+        lines[ks], hl[ks], hl_cov[ks] = out_l, out_h, out_c
     good = np.all(np.isfinite(hl), axis=1)
     if np.count_nonzero(good) < 3:
         return centre, sig_c, np.zeros(centre.shape[0], dtype=bool), lines, None
     off = hl[good] - centre[good]
-    med = np.median(off, axis=0)
-    # the median's uncertainty (common to all balls): 1.25 std / sqrt(n)
-    s_med = 1.2533 * off.std(axis=0, ddof=1) / np.sqrt(off.shape[0])
+    T = _tangent_basis(nrm)
+    trend = _offset_trend(off, centre[good] @ T.T)
+    if trend is None:
+        med = np.median(off, axis=0)
+        # the median's uncertainty (common to all balls): 1.25 std / sqrt(n)
+        s_med = 1.2533 * off.std(axis=0, ddof=1) / np.sqrt(off.shape[0])
+        med_good, var_med = med, (T**2) @ (s_med**2)
+    else:
+        # the offset drifts over the part (a projector or camera that is not
+        # telecentric lights or sees each ball from another direction): each ball's
+        # offset from the fitted trend, with that prediction's uncertainty
+        med_good, s_pred = trend
+        med = np.full(centre.shape, np.nan)
+        med[good] = med_good
+        var_med = (s_pred**2) @ (T**2).T  # (m, 2)
     new_c = centre.copy()
     new_s = sig_c.copy()
-    delta = hl[good] - med - centre[good]
+    delta = hl[good] - med_good - centre[good]
     delta -= (delta @ nrm)[:, None] * nrm  # move on the substrate plane only
     new_c[good] = centre[good] + delta
-    T = _tangent_basis(nrm)
-    # in-plane uncertainty from the highlight fit and the median offset; along the
-    # normal the cap fit's
+    # in-plane uncertainty from the highlight fit and the offset; along the normal the
+    # cap fit's
     var_t = np.einsum("ij,kjl,il->ki", T, hl_cov[good], T)  # (m, 2), tangent basis
-    var_t = var_t + (T**2) @ (s_med**2)
+    var_t = var_t + var_med
     var_n = (sig_c[good] ** 2) @ (nrm**2)  # (m,)
     new_s[good] = np.sqrt(var_t @ (T**2) + var_n[:, None] * nrm**2)
     return new_c, new_s, good, lines, med
+
+
+#: A trend of the highlight offsets over the part is used when one of its slopes is
+#: beyond this many standard errors (6 slopes tested: a false trend once in ~3000 parts
+#: whose offset is truly common).
+TREND_K = 4.0
+
+
+def _offset_trend(off: np.ndarray, xy: np.ndarray):
+    """An affine trend of the balls' highlight offsets ``off`` (m, 3) over their
+    in-plane positions ``xy`` (m, 2) (mm), fitted robustly (least squares, then without
+    residuals beyond 4 MAD, repeated until the kept balls repeat, at most 5 times).
+
+    With a telecentric camera and projector the offset is the same for every ball and
+    the trend's slopes are noise; with a pinhole projector (or camera) the light (or the
+    view) comes from another direction at every ball and the offset drifts over the part
+    (about r times half the angle the part subtends). Returns (prediction (m, 3), its
+    standard uncertainty (m, 3)) when a slope is beyond :data:`TREND_K` of its standard
+    error, else None (the median offset is used).
+    """
+    m = off.shape[0]
+    if m < 12:
+        return None
+    A = np.column_stack([np.ones(m), xy - xy.mean(axis=0)])
+    keep = np.ones(m, dtype=bool)
+    for _ in range(5):
+        coef, *_ = np.linalg.lstsq(A[keep], off[keep], rcond=None)
+        res = off - A @ coef
+        scale = 1.4826 * np.median(np.abs(res[keep]), axis=0)
+        new = np.all(np.abs(res) <= 4.0 * np.maximum(scale, 1e-15), axis=1)
+        if np.array_equal(new, keep) or np.count_nonzero(new) < 12:
+            break
+        keep = new
+    coef, *_ = np.linalg.lstsq(A[keep], off[keep], rcond=None)
+    res = off[keep] - A[keep] @ coef
+    s2 = np.sum(res**2, axis=0) / max(int(keep.sum()) - 3, 1)  # (3,)
+    try:
+        C = np.linalg.inv(A[keep].T @ A[keep])
+    except np.linalg.LinAlgError:
+        return None
+    t = np.abs(coef[1:]) / np.sqrt(np.outer(np.diag(C)[1:], s2) + 1e-300)  # (2, 3)
+    if not np.any(t > TREND_K):
+        return None
+    var = np.einsum("ij,jk,ik->i", A, C, A)[:, None] * s2[None, :]
+    return A @ coef, np.sqrt(var)
 
 
 def _fit_along_line(q: np.ndarray, w: np.ndarray, a: np.ndarray, d: np.ndarray, r: float,

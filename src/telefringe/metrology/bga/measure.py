@@ -12,7 +12,11 @@ from telefringe.metrology.bga.coplanarity import seating_plane_coplanarity
 from telefringe.metrology.bga.grid import _claim_positions, _grid_local, _register_grid
 from telefringe.metrology.bga.highlights import _fit_along_line, _refine_by_highlights
 from telefringe.metrology.bga.nominal import BGANominal
-from telefringe.metrology.bga.psf import _brightness_gradient_terms, _fit_caps_smoothed
+from telefringe.metrology.bga.psf import (
+    _brightness_gradient_terms,
+    _fit_caps_smoothed,
+    shared_direction,
+)
 from telefringe.metrology.bga.result import BGAMeasurement
 from telefringe.metrology.bga.segment import cap_candidates, segment
 from telefringe.reconstruction.cloud import PointCloud
@@ -167,11 +171,16 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
         alone. The highlight's 3-D point is where its camera line meets the ball's fitted
         sphere. Balls without a clear highlight keep their cap centres. With the
         point-spread model the image also gives the brightness-gradient terms.
+        With a pinhole camera (a cloud whose pixels have their own viewing directions,
+        :attr:`PointCloud.directions` (rows, cols, 3)) each ball is seen from another
+        direction, so there is no common offset: the highlights do not move the
+        centres (``refined`` False); the cap fits, their view-angle cut and the
+        point-spread model use each point's own viewing direction.
     projector : TelecentricDevice, optional
         The (calibrated) projector, for the brightness-gradient term of the point-spread
         model (u fringes only; without it the term's geometric factor is estimated,
-        which also absorbs the v fringes' share). Needs ``cap_model="psf"`` and an
-        ``image``.
+        which also absorbs the v fringes' share). Needs ``cap_model="psf"``, an
+        ``image`` and a telecentric camera (one viewing direction).
     options : BGAOptions, optional (default ``BGAOptions()``).
 
     Returns
@@ -183,7 +192,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
     MetrologyError
         No ball, no ball that could be fitted, a grid that does not fit the nominal one,
         an image of the wrong shape, or a ``projector`` or ``highlight_px`` that would
-        not be used (no image, or a cap model without the point-spread term).
+        not be used (no image, or a cap model without the point-spread term), or a
+        ``projector`` with a pinhole camera.
 
     Warns
     -----
@@ -231,9 +241,11 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
 
 def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradient: bool):
     """Stage: one CapFit per candidate (those with a reason stay unfitted)."""
-    view = -np.asarray(cloud.direction, dtype=np.float64)
     idx = [k for k, c in enumerate(cands) if c.reason is None]
     caps_in = [(cands[k].points, cands[k].sigma, cands[k].gradient) for k in idx]
+    shared = shared_direction(cloud)
+    # toward the camera: one vector for every point, or each point's own (pinhole)
+    view = -shared if shared is not None else [cands[k].view for k in idx]
     s2 = (np.nan, np.nan)
     cov_theta = None
     psf_run = (0, None)
@@ -268,7 +280,10 @@ def _centres_and_apexes(cloud, seg, image, cands, caps, cov_theta, cap_model):
     refined = np.zeros(len(fits), dtype=bool)
     med = None
     regions = [(c.slice, c.region) for c in cands]
-    if image is not None:
+    d = shared_direction(cloud)
+    if image is not None and d is not None:
+        # (a pinhole camera sees each ball from another direction: the highlights'
+        # common offset does not hold, the centres stay the cap fits')
         sig_top = np.array([_apex_sigma(f, nrm) for f in fits])
         centre, sig_c, refined, lines, med = _refine_by_highlights(
             cloud, image, regions, centre, sig_c, nrm, radius, sig_top)
@@ -276,9 +291,9 @@ def _centres_and_apexes(cloud, seg, image, cands, caps, cov_theta, cap_model):
     if cap_model == "psf" and image is not None and med is not None:
         # every ball's centre lies on its highlight's camera line shifted by the common
         # offset: fit the one remaining unknown, the depth along that line
-        d = np.asarray(cloud.direction, dtype=np.float64)
         for k in np.flatnonzero(refined):
-            res = _fit_along_line(caps[k].points, caps[k].weights, lines[k] - med, d,
+            res = _fit_along_line(caps[k].points, caps[k].weights,
+                                  lines[k] - (med if med.ndim == 1 else med[k]), d,
                                   radius[k], centre[k])
             if res is not None:
                 centre[k], s_t = res

@@ -8,9 +8,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from telefringe.metrology._common import MetrologyError
+from telefringe.metrology._common import _MAD, MetrologyError
 from telefringe.metrology.bga.caps import CapFit
-from telefringe.metrology.spheres import fit_sphere
 from telefringe.reconstruction.cloud import PointCloud
 
 
@@ -39,6 +38,17 @@ class PSFCapFits(NamedTuple):
     rounds: int
     converged: bool
     n_balls: int
+
+
+def shared_direction(cloud: PointCloud) -> np.ndarray | None:
+    """The cloud's viewing direction (3,) when every pixel shares it (a telecentric
+    camera), else None (a pinhole camera: :attr:`PointCloud.directions` per pixel)."""
+    from telefringe.reconstruction.cloud import TriangulationError
+
+    try:
+        return np.asarray(cloud.direction, dtype=np.float64)
+    except TriangulationError:
+        return None
 
 
 def _smoothing_shape(pts: np.ndarray, centre: np.ndarray, r: float, view: np.ndarray):
@@ -75,12 +85,17 @@ def _brightness_gradient_terms(cloud: PointCloud, image: np.ndarray, projector,
     s^2 k is then estimated from the data (``known`` False). Only the u fringes are
     modelled (the v axis adds little depth information). NaN where unknown.
     """
-    d = np.asarray(cloud.direction, dtype=np.float64)
-    xyz = np.where(cloud.mask[..., None], cloud.xyz, np.nan)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ln_i = np.log(np.where(image > 0, image, np.nan))
+    d = shared_direction(cloud)
     B = np.zeros(cloud.shape + (3,))
     if projector is not None:
+        if d is None:
+            raise MetrologyError(
+                "the projector's brightness-gradient term needs one viewing direction for "
+                "every pixel (a telecentric camera); with this camera leave out the "
+                "projector (the term's factor is then estimated from the caps)")
+        xyz = np.where(cloud.mask[..., None], cloud.xyz, np.nan)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ln_i = np.log(np.where(image > 0, image, np.nan))
         gi_v, gi_u = np.gradient(ln_i)
         up = np.asarray(projector.project(xyz)[0], dtype=np.float64)
         x0 = np.nanmedian(xyz.reshape(-1, 3), axis=0)
@@ -89,12 +104,17 @@ def _brightness_gradient_terms(cloud: PointCloud, image: np.ndarray, projector,
         gu_v, gu_u = np.gradient(up)
         B[..., 0] = (gi_u * gu_u + gi_v * gu_v) / du_dt / px_mm**2
         return B, True
-    t = xyz @ d
-    if min(t.shape) >= 2:  # (one compiled pass, the same arithmetic as below)
-        from telefringe.metrology.bga._kernels import gradient_terms
+    # (compiled passes: the same arithmetic as the NumPy form at the end)
+    from telefringe.metrology.bga._kernels import gradient_terms, log_and_depth
 
-        gradient_terms(np.ascontiguousarray(ln_i), np.ascontiguousarray(t),
-                       float(px_mm**2), B)
+    ln_i = np.empty(cloud.shape)
+    t = np.empty(cloud.shape)
+    log_and_depth(np.ascontiguousarray(image, dtype=np.float64),
+                  np.ascontiguousarray(cloud.xyz, dtype=np.float64),
+                  np.ascontiguousarray(cloud.mask),
+                  np.broadcast_to(cloud.directions, cloud.shape + (3,)), ln_i, t)
+    if min(t.shape) >= 2:
+        gradient_terms(ln_i, t, float(px_mm**2), B)
         return B, False
     gi_v, gi_u = np.gradient(ln_i)
     gt_v, gt_u = np.gradient(t)
@@ -148,19 +168,94 @@ def _schur_normal_equations(terms, npar: int):
     return A, bvec, chi2, dof
 
 
+def _reduced_system(fits: dict, npar: int):
+    """The reduced normal equations of theta summed over the balls of one
+    :func:`_fit_packed` call (balls whose centre block is singular left out, as in
+    :func:`_schur_normal_equations`): (A (p, p), b (p,), chi2, dof)."""
+    ok = fits["schur_ok"]
+    return (fits["A"][ok].sum(axis=0).reshape(npar, npar), fits["b"][ok].sum(axis=0),
+            float(fits["chi2"][ok].sum()), int(fits["dof"][ok].sum()))
+
+
+def _fit_packed(packed: dict, balls: np.ndarray, theta: np.ndarray, r: float) -> dict:
+    """The caps ``balls`` of ``packed`` (from :func:`_pack_caps`) fitted with the common
+    parameters ``theta``, one ball per thread
+    (:func:`telefringe.metrology.bga._caps_kernels.fit_caps`)."""
+    from telefringe.metrology.bga._caps_kernels import fit_caps
+
+    nb, npar, N = balls.size, theta.size, packed["pts"].shape[0]
+    out = {"status": np.empty(nb, dtype=np.int64), "centre": np.zeros((nb, 3)),
+           "cov": np.zeros((nb, 3, 3)), "rms": np.zeros(nb), "form": np.zeros(nb),
+           "n_inl": np.zeros(nb, dtype=np.int64), "inl": np.zeros(N, dtype=bool),
+           "q": np.zeros((N, 3)), "A": np.zeros((nb, npar, npar)), "b": np.zeros((nb, npar)),
+           "chi2": np.zeros(nb), "dof": np.zeros(nb, dtype=np.int64),
+           "dc": np.zeros((nb, 3, npar)), "schur_ok": np.zeros(nb, dtype=bool)}
+    fit_caps(packed["pts"], packed["R"], packed["w"], packed["off"], packed["counts"],
+             packed["c0"], np.ascontiguousarray(balls, dtype=np.int64),
+             np.ascontiguousarray(theta, dtype=np.float64), packed["view"], float(r), 4.0,
+             _MAD,
+             out["status"], out["centre"], out["cov"], out["rms"], out["form"],
+             out["n_inl"], out["inl"], out["q"], out["A"], out["b"], out["chi2"],
+             out["dof"], out["dc"], out["schur_ok"])
+    return out
+
+
+_REASONS = {1: "too_few_points", 2: "fit_failed", 3: "too_few_points_facing_camera"}
+
+
+def _pack_caps(caps, view, r: float, cos_min: float, npar: int) -> dict:
+    """The caps packed one after another and prepared for the point-spread fits
+    (:func:`telefringe.metrology.bga._caps_kernels.prepare_caps`: finite points, a robust
+    sphere of radius r, the points facing the camera, their regressors and weights).
+    ``view``: (3,) toward the camera for every point, or per cap (m, 3)."""
+    from telefringe.metrology.bga._caps_kernels import prepare_caps
+
+    nb = len(caps)
+    off = np.zeros(nb + 1, dtype=np.int64)
+    np.cumsum([c[0].shape[0] for c in caps], out=off[1:])
+    N = int(off[-1])
+
+    def cat(i, width):
+        if not nb:
+            return np.zeros((0, width)) if width else np.zeros(0)
+        return np.ascontiguousarray(np.concatenate([np.asarray(c[i], dtype=np.float64)
+                                                    for c in caps]))
+
+    p = {"off": off, "pts": np.zeros((N, 3)), "R": np.zeros((N, npar)), "w": np.zeros(N),
+         "view": np.zeros((N, 3)), "counts": np.zeros(nb, dtype=np.int64),
+         "c0": np.zeros((nb, 3)), "status": np.empty(nb, dtype=np.int64)}
+    v = np.asarray(view, dtype=np.float64) if not isinstance(view, list) else None
+    if v is not None and v.shape == (3,):
+        views = np.ascontiguousarray(np.broadcast_to(v, (N, 3)))
+    else:
+        views = np.ascontiguousarray(np.concatenate(view) if nb else np.zeros((0, 3)),
+                                     dtype=np.float64).reshape(N, 3)
+    prepare_caps(cat(0, 3).reshape(N, 3), cat(1, 0), cat(2, 3).reshape(N, 3), views, off,
+                 float(r), float((r * np.sin(np.radians(80.0))) ** 2), float(cos_min),
+                 int(npar), 4.0, _MAD, p["pts"], p["R"], p["w"], p["view"], p["counts"],
+                 p["c0"], p["status"])
+    return p
+
+
 def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: float,
                        free_gradient: bool, sub_every: int = 4,
                        rounds: int = 6) -> PSFCapFits:
     """Fixed-radius cap fits that model the camera's point spread, and its variance.
 
     ``caps``: list of (pts (m, 3), sig (m,), B (m, 3)) per ball (B: see
-    :func:`_brightness_gradient_terms`, zeros when no image). The points of each ball are
-    moved up the viewing direction by s^2 (g + B0) + a . (B1, B2) (g: see
+    :func:`_brightness_gradient_terms`, zeros when no image); ``view``: the unit vector
+    toward the camera, (3,) for every point (a telecentric camera) or a list of (m, 3)
+    per ball (each point's own: a pinhole camera). The points of each ball are
+    moved up their viewing direction by s^2 (g + B0) + a . (B1, B2) (g: see
     :func:`_smoothing_shape`; a = 0 unless ``free_gradient``) and fitted with a sphere of
     radius ``r`` weighted by 1 / (sigma_line cos(tilt))^2. The global parameters
     theta = (s^2[, a1, a2]), common to every ball (one camera, one rig), are estimated by
     Gauss-Newton on all balls' residuals at once (Schur complement of the per-ball
     centres, :func:`_schur_normal_equations`), on every ``sub_every``-th ball.
+
+    The balls are fitted in parallel by compiled kernels
+    (:mod:`telefringe.metrology.bga._caps_kernels`; the NumPy forms of their steps are
+    :func:`_smoothing_shape`, :func:`_cap_residuals` and :func:`_schur_normal_equations`).
 
     When the common parameters cannot be estimated (a singular system), a
     :class:`PSFSolveWarning` is issued, theta and its covariance are NaN and the caps are
@@ -171,63 +266,25 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
     -------
     PSFCapFits
     """
+    from telefringe.metrology.spheres import SphereFit
+
     cos_min = np.cos(np.radians(max_view_angle_deg))
     npar = 3 if free_gradient else 1
-    sel = []
-    reasons = []
-    for pts, sig, bg in caps:
-        ok = (np.all(np.isfinite(pts), axis=1) & np.isfinite(sig) & (sig > 0)
-              & np.all(np.isfinite(bg), axis=1))
-        pts, sig, bg = pts[ok], sig[ok], bg[ok]
-        item, why = None, None
-        if pts.shape[0] < 10:
-            why = "too_few_points"
-        else:
-            try:
-                f0 = fit_sphere(pts, robust=True, radius=r)
-            except MetrologyError:
-                why = "fit_failed"
-            else:
-                cos_t, _ = _smoothing_shape(pts, f0.centre, r, view)
-                keep = cos_t >= cos_min
-                if np.count_nonzero(keep) < 10:
-                    why = "too_few_points_facing_camera"
-                else:
-                    pts, sig, bg = pts[keep], sig[keep], bg[keep]
-                    # (theta-independent: computed once, not in every round)
-                    cos_t, g = _smoothing_shape(pts, f0.centre, r, view)
-                    R = np.column_stack([g + bg[:, 0], bg[:, 1], bg[:, 2]])[:, :npar]
-                    item = (pts, f0.centre, R, 1.0 / (sig * cos_t) ** 2)
-        sel.append(item)
-        reasons.append(why)
-
-    def fit_one(item, theta):
-        pts, c, R, w = item
-        q = pts + np.outer(R @ theta, view)  # moved up, toward the camera
-        f = fit_sphere(q, weights=w, robust=True, radius=r, start=c)
-        m = f.inliers
-        res, J, K = _cap_residuals(pts[m], R[m], f.centre, theta, r, view)
-        return f, q, w, J, K, res
-
+    packed = _pack_caps(caps, view, r, cos_min, npar)
+    status = packed["status"]
+    usable = np.flatnonzero(status == 0)
     theta = np.zeros(npar)
     cov = np.full((npar, npar), np.nan)
-    sub = [k for k, it in enumerate(sel) if it is not None][::max(int(sub_every), 1)]
-    if not sub:  # no cap to fit: each keeps its reason (the caller has no ball)
-        return PSFCapFits([CapFit(None, why) for why in reasons], np.full(npar, np.nan),
-                          np.full((npar, npar), np.nan), 0, False, 0)
+    sub = usable[::max(int(sub_every), 1)]
+    if not sub.size:  # no cap to fit: each keeps its reason (the caller has no ball)
+        return PSFCapFits([CapFit(None, _REASONS[int(s)]) for s in status],
+                          np.full(npar, np.nan), np.full((npar, npar), np.nan), 0, False, 0)
     converged = False
     failed = False
     n_rounds = 0
     for _ in range(rounds):
         n_rounds += 1
-        terms = []
-        for k in sub:
-            try:
-                f, q, w, J, K, res = fit_one(sel[k], theta)
-            except MetrologyError:
-                continue
-            terms.append((res, J, K, w[f.inliers]))
-        A, bvec, chi2, dof = _schur_normal_equations(terms, npar)
+        A, bvec, chi2, dof = _reduced_system(_fit_packed(packed, sub, theta, r), npar)
         try:
             step = -np.linalg.solve(A, bvec)
             cov = chi2 / max(dof - npar, 1) * np.linalg.inv(A)
@@ -252,19 +309,20 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
         if not converged:
             warnings.warn(f"the point-spread variance did not converge in {n_rounds} rounds",
                           PSFConvergenceWarning, stacklevel=3)
-    out = []
-    for it, why in zip(sel, reasons, strict=True):
-        if it is None:
-            out.append(CapFit(None, why))
+    fits = _fit_packed(packed, usable, theta_fit, r)
+    out = [None if s == 0 else CapFit(None, _REASONS[int(s)]) for s in status]
+    off, counts = packed["off"], packed["counts"]
+    for t, k in enumerate(usable):
+        if fits["status"][t] != 0 or not fits["schur_ok"][t]:
+            out[k] = CapFit(None, "fit_failed")
             continue
-        try:
-            f, q, w, J, K, _ = fit_one(it, theta_fit)
-            wk = w[f.inliers]
-            # the centre's sensitivity to theta (at its optimum: H dc = -J^T W K dth)
-            H = J.T @ (wk[:, None] * J)
-            dc = -np.linalg.solve(H, J.T @ (wk[:, None] * K))
-        except (MetrologyError, np.linalg.LinAlgError):
-            out.append(CapFit(None, "fit_failed"))
-            continue
-        out.append(CapFit(f, None, points=q[f.inliers], weights=wk, dcentre_dtheta=dc))
+        rows = slice(off[k], off[k] + counts[k])
+        inl = fits["inl"][rows]
+        c4 = np.zeros((4, 4))
+        c4[:3, :3] = fits["cov"][t]
+        f = SphereFit(fits["centre"][t], float(r), float(fits["rms"][t]),
+                      float(fits["form"][t]), int(counts[k]), int(fits["n_inl"][t]), inl,
+                      c4)
+        out[k] = CapFit(f, None, points=fits["q"][rows][inl], weights=packed["w"][rows][inl],
+                        dcentre_dtheta=fits["dc"][t])
     return PSFCapFits(out, theta, cov, n_rounds, converged, len(sub))

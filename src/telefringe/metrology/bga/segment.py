@@ -39,6 +39,8 @@ class Candidate(NamedTuple):
     :data:`telefringe.metrology.bga.result.NOT_MEASURED_REASONS`).
     points, sigma : (m, 3), (m,) the cap points and their ``sigma_line`` (None when
     ``reason``).   gradient : (m, 3) brightness-gradient terms (zeros without them).
+    view : (m, 3) unit vectors from each point toward the camera (along its pixel's
+    line of sight: the same for every point of a telecentric camera).
     """
 
     slice: tuple
@@ -47,6 +49,7 @@ class Candidate(NamedTuple):
     points: np.ndarray | None = None
     sigma: np.ndarray | None = None
     gradient: np.ndarray | None = None
+    view: np.ndarray | None = None
 
 
 def _sigma_weights(cloud: PointCloud, sel: np.ndarray):
@@ -64,29 +67,33 @@ def segment(cloud: PointCloud, D: float, *, min_height: float | None,
     (default 0.2 D) above it form connected regions; the substrate is then refitted on
     the points farther than ``substrate_margin`` (default D / 2) from every region.
     """
-    from scipy import ndimage
+    from telefringe.metrology.bga._kernels import heights, row_steps, within_taxicab
 
+    xyz = np.ascontiguousarray(cloud.xyz, dtype=np.float64)
+    mask = np.ascontiguousarray(cloud.mask)
     k = 3 if cloud.count > 200_000 else 1
     sub_sel = np.zeros(cloud.shape, dtype=bool)
     sub_sel[::k, ::k] = True
     sub_sel &= cloud.mask
     substrate = fit_plane(cloud.xyz[sub_sel], weights=_sigma_weights(cloud, sub_sel),
                           robust=True, seed=seed)
-    h = np.where(cloud.mask, cloud.xyz @ substrate.normal - substrate.offset, np.nan)
+    h = np.empty(cloud.shape)
+    heights(xyz, mask, substrate.normal, substrate.offset, h)
     thr = 0.2 * D if min_height is None else float(min_height)
     above = np.nan_to_num(h, nan=-np.inf) > thr
     labels, n_lab = _components(above)
     if n_lab == 0:
         raise MetrologyError(f"no ball: nothing stands {thr:.3g} mm above the substrate")
     # expected footprint of a ball in pixels (from the cloud's point spacing)
-    step = np.linalg.norm(np.diff(cloud.xyz[:, :, :2], axis=1), axis=2)
-    px_mm = float(np.nanmedian(step)) if np.any(np.isfinite(step)) else np.nan
+    step = row_steps(xyz)  # the finite ones
+    px_mm = float(np.median(step)) if step.size else np.nan
     foot = np.pi * (D / 2) ** 2 / px_mm**2 if np.isfinite(px_mm) else 0.0
     margin = 0.5 * D if substrate_margin is None else float(substrate_margin)
     if margin > 0 and np.isfinite(px_mm):
         # refit the substrate away from the balls: next to a ball the substrate's points
         # are biased (its shadow edge and its flank's light, spread by the camera)
-        near = ndimage.binary_dilation(above, iterations=max(int(np.ceil(margin / px_mm)), 1))
+        # (as ndimage.binary_dilation(above, iterations=...), in one compiled pass)
+        near = within_taxicab(above, max(int(np.ceil(margin / px_mm)), 1))
         far = cloud.mask & ~near
         if cloud.count > 200_000:  # every second row and column is plenty
             far[1::2, :] = False
@@ -94,8 +101,7 @@ def segment(cloud: PointCloud, D: float, *, min_height: float | None,
         if np.count_nonzero(far) >= max(100, 0.01 * cloud.count):
             substrate = fit_plane(cloud.xyz[far], weights=_sigma_weights(cloud, far),
                                   robust=True, seed=seed)
-            h = np.where(cloud.mask, cloud.xyz @ substrate.normal - substrate.offset,
-                         np.nan)
+            heights(xyz, mask, substrate.normal, substrate.offset, h)
     return Segmentation(substrate, h, above, labels, int(n_lab), px_mm, float(foot))
 
 
@@ -113,10 +119,13 @@ def cap_candidates(cloud: PointCloud, seg: Segmentation, D: float, *, image, gra
     """
     from scipy import ndimage
 
+    from telefringe.metrology.bga._kernels import eroded_taxicab
+
     labels, px_mm, foot = seg.labels, seg.px_mm, seg.footprint_px
     sizes = np.bincount(labels.ravel(), minlength=seg.n_labels + 1)
     slices = ndimage.find_objects(labels)
     cap_thr = 0.3 * D if cap_min_height is None else float(cap_min_height)
+    dirs = np.asarray(cloud.directions, dtype=np.float64)
     out = []
     for lab in range(1, seg.n_labels + 1):
         sl = slices[lab - 1]
@@ -131,8 +140,8 @@ def cap_candidates(cloud: PointCloud, seg: Segmentation, D: float, *, image, gra
             out.append(Candidate(sl, region, "region_too_large"))
             continue
         reg = region
-        if edge_px > 0:
-            reg = ndimage.binary_erosion(reg, iterations=int(edge_px))
+        if edge_px > 0:  # (as ndimage.binary_erosion(reg, iterations=edge_px))
+            reg = eroded_taxicab(reg, int(edge_px))
         sel = reg & (np.nan_to_num(seg.height[sl], nan=-np.inf) > cap_thr)
         if image is not None and highlight_px > 0:
             # pixels near the specular highlight: the camera's point spread mixes the
@@ -146,5 +155,7 @@ def cap_candidates(cloud: PointCloud, seg: Segmentation, D: float, *, image, gra
             out.append(Candidate(sl, region, "too_few_points"))
             continue
         grad = np.zeros((pts.shape[0], 3)) if gradient is None else gradient[sl][sel]
-        out.append(Candidate(sl, region, None, pts, cloud.sigma_line[sl][sel], grad))
+        view = (np.broadcast_to(-dirs, pts.shape).copy() if dirs.ndim == 1
+                else -dirs[sl][sel])
+        out.append(Candidate(sl, region, None, pts, cloud.sigma_line[sl][sel], grad, view))
     return out
