@@ -47,3 +47,38 @@ def test_invertible_models_invert_everywhere_and_the_rest_are_not_monotonic():
             # refused only when not monotonic or too close to it to prove at 2^22 points
             assert _fine_min(m, 2 ** 18) < 1e-3
     assert seen[True] >= 10 and seen[False] >= 10
+
+
+def test_a_three_step_scan_learns_its_gamma_without_a_traceback(tmp_path):
+    """A 3-step scan's gamma fit prunes harmonics and restarts from the pruned model,
+    which dropping harmonics can leave non-invertible: the restart is made invertible
+    (halved, reported) instead of raising inside Gauss-Newton. Plate of the cropped fast
+    rig (a bare rig, so residuals include its nominal geometry): reconstructed, most
+    pixels valid, and the plane-fit residual over sigma_z within 2x what the code achieves
+    (RMS 5.9; 4 steps give 1.7 on the same scene, the 3-step phase keeps more of the
+    gamma's error)."""
+    import json
+
+    from telefringe.cli import main
+    from telefringe.io.rig_json import bare_rig_json
+    from telefringe.io.scan_json import write_scan
+    from telefringe.simulate.presets import crop_camera, get_preset
+    from telefringe.simulate.render import default_groups, render_scan
+    from telefringe.simulate.scenes import plate_at_z
+
+    vr = crop_camera(get_preset("fast"), col0=100, row0=80, width=120, height=100)
+    (tmp_path / "rig.json").write_text(json.dumps(bare_rig_json(vr.rig,
+                                                                reference_pose="truth")))
+    scan, _ = render_scan(vr, plate_at_z(0.0), default_groups(vr, steps=3), seed=3)
+    write_scan(tmp_path / "three", scan)
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(tmp_path / "three"), "--rig", str(tmp_path / "rig.json"),
+                 "-o", str(out), "--no-ply", "--noise-model", "default"]) == 0
+    pts = np.load(out / "points.npz")
+    xyz, sz = pts["xyz"].reshape(-1, 3), pts["sigma_z"].ravel()
+    ok = np.isfinite(xyz).all(axis=1) & np.isfinite(sz)
+    assert ok.mean() > 0.5  # 0.69 (6 % without the gamma correction)
+    a = np.c_[xyz[ok, :2], np.ones(ok.sum())]
+    coef, *_ = np.linalg.lstsq(a, xyz[ok, 2], rcond=None)
+    z = (xyz[ok, 2] - a @ coef) / sz[ok]
+    assert np.sqrt(np.mean(z ** 2)) < 12.0

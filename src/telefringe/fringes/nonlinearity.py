@@ -590,16 +590,20 @@ def _initial(samp, per, harm, harm_arr, offs, pairs, notes=None):
         c, *_ = np.linalg.lstsq(design[::max(1, est.size // 20000)],
                                 d[::max(1, est.size // 20000)], rcond=None)
         coef[offs[g]:offs[g + 1]] = c
+    return _invertible_start(coef, per, harm, offs, notes, "the linear fit")
+
+
+def _invertible_start(coef, per, harm, offs, notes, what):
+    """``coef`` halved until every group's model is invertible (at most 20 halvings, then
+    zero, reported in ``notes``): Gauss-Newton inverts the models from its first step."""
     for _ in range(20):
-        models = [PhaseErrorModel(per[g], tuple(harm[g]), coef[offs[g]:offs[g + 1]:2],
-                                  coef[offs[g] + 1:offs[g + 1]:2]) for g in range(n)]
-        if all(m.invertible for m in models):
+        if all(m.invertible for m in _models(per, harm, offs, coef)):
             return coef
         coef = 0.5 * coef
     if notes is not None:
-        notes.append("starting values: the linear fit stayed non-invertible after 20 "
+        notes.append(f"starting values: {what} stayed non-invertible after 20 "
                      "halvings; Gauss-Newton started from zero")
-    return np.zeros(n_par)
+    return np.zeros(int(offs[-1]))
 
 
 def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
@@ -633,12 +637,12 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
         sub_pairs = [(a, b, r, *(None if v is None else np.asarray(v)[::stride]
                                  for v in rest)) for a, b, r, *rest in pairs]
         coef = (_initial(sub, per, harm, harm_arr, offs, sub_pairs, notes) if start is None
-                else _start_coefficients(start, harm, offs))
+                else _start_coefficients(start, harm, offs, per, notes))
         coef = _gauss_newton(sub, per, harm, harm_arr, offs, sub_pairs, coef, max_it, reject,
                              tol=1e-6, reject_first=False, notes=notes)[0]
     else:
         coef = (_initial(samp, per, harm, harm_arr, offs, pairs, notes) if start is None
-                else _start_coefficients(start, harm, offs))
+                else _start_coefficients(start, harm, offs, per, notes))
     coef, rms, total_keep, ata, chi2 = _gauss_newton(samp, per, harm, harm_arr, offs, pairs,
                                                      coef, max_it, reject, tol=1e-7,
                                                      reject_first=stride > 1, notes=notes)
@@ -649,8 +653,9 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
     return models, rms, total_keep, cov
 
 
-def _start_coefficients(models, harm, offs):
-    """Coefficient vector for harmonics ``harm`` (per group) taken from ``models``."""
+def _start_coefficients(models, harm, offs, per, notes=None):
+    """Coefficient vector for harmonics ``harm`` (per group) taken from ``models``, made
+    invertible (dropping harmonics from an invertible model can leave one that is not)."""
     coef = np.zeros(int(offs[-1]))
     for g, (m, h) in enumerate(zip(models, harm, strict=True)):
         for j, order in enumerate(h):
@@ -658,7 +663,7 @@ def _start_coefficients(models, harm, offs):
                 k = m.harmonics.index(order)
                 coef[offs[g] + 2 * j] = m.cos_coef[k]
                 coef[offs[g] + 2 * j + 1] = m.sin_coef[k]
-    return coef
+    return _invertible_start(coef, per, harm, offs, notes, "the pruned fit")
 
 
 def _models(per, harm, offs, coef):
