@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from telefringe import _recycle
 from telefringe.fringes.errors import DecodeError, LadderDecodeError
 from telefringe.fringes.nonlinearity import PhaseErrorModel
 from telefringe.fringes.phase import NoiseModel
@@ -209,6 +210,7 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     k4 = 4 * ((max(steps) + 3) // 4)  # the kernel sums steps four at a time
     sw, cw = np.zeros((n_mem, k4)), np.zeros((n_mem, k4))
     s2w, c2w = np.zeros((n_mem, k4)), np.zeros((n_mem, k4))
+    ew = np.zeros((n_mem, k4), dtype=np.float32)  # 1 for the steps, 0 for the padding
     stacks = []
     dt = members[0][0].dtype
     integer = dt.kind in "ui" and dt.itemsize <= 2
@@ -217,6 +219,7 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
         c, s, c2, s2, exact = _weights(k, off)
         cw[i, :k], sw[i, :k] = c, s
         c2w[i, :k], s2w[i, :k] = c2, s2
+        ew[i, :k] = 1.0
         # integer samples below 2^16, weights 0, +-1/2, +-1 and N <= 128: every partial
         # sum is a multiple of 1/2 below 2^23, so the float32 sums are exact
         exact32[i] = integer and k <= 128 and exact
@@ -259,13 +262,14 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     min_mod2[low] = np.nextafter(min_mod2[low], np.float32(np.inf))
     shape = stacks[0].shape[1:]
     one = (1, 1)
-    out = {"coordinate": np.empty(shape), "valid": np.empty(shape, dtype=bool),
-           "modulation": np.empty(shape)}
+    # (recycled memory: every element is written by the kernel)
+    out = {"coordinate": _recycle.empty(shape), "valid": _recycle.empty(shape, dtype=bool),
+           "modulation": _recycle.empty(shape)}
     names = (("sigma", np.float64), ("background", np.float64), ("exposure", np.float64),
              ("saturated", bool), ("low_modulation", bool), ("shadow", bool),
              ("order_reliable", bool))
     for name, t in names:
-        out[name] = np.empty(shape if full else one, dtype=t)
+        out[name] = _recycle.empty(shape if full else one, dtype=t)
     noise = noise if noise is not None else NoiseModel()
     if n_mem > _MAX_MEMBERS:
         raise DecodeError(f"the fused kernel takes at most {_MAX_MEMBERS} phase groups per "
@@ -276,7 +280,8 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     _k.fused_ladder(
         tuple(stacks), np.asarray(lev_first, dtype=np.int64),
         np.asarray([e for _, e in members], dtype=np.float64), exact32, nst,
-        sw.astype(np.float32), cw.astype(np.float32), sw, cw, s2w, c2w,
+        sw.astype(np.float32), cw.astype(np.float32), sw, cw, s2w.astype(np.float32),
+        c2w.astype(np.float32), ew,
         np.asarray(periods, dtype=np.float64), float(length), tables,
         np.asarray(use, dtype=np.bool_) & ~has_series, nf_tables,
         np.asarray(use, dtype=np.bool_), ser_a, ser_b, ser_c0, ser_d, ser_n, has_series,
