@@ -45,6 +45,8 @@ _TABLE_CACHE: collections.OrderedDict = collections.OrderedDict()
 _TABLE_CACHE_LOCK = threading.Lock()
 _TABLE_CACHE_MAX_ENTRIES = 64
 _TABLE_CACHE_MAX_BYTES = 64 * 2 ** 20
+#: the corrections' Fourier series (:func:`_model_series`), least recently used first
+_SERIES_CACHE: collections.OrderedDict = collections.OrderedDict()
 
 
 def _table_bytes(value) -> int:
@@ -117,11 +119,13 @@ def _model_series(model: PhaseErrorModel):
     ``_SERIES_GRID`` points solved exactly by Newton's method) with a fifth element:
     whether 1 - g' from it is the exact noise factor ``1 / (1 + e'(true phase))`` within
     NF_SERIES_TOL at those points (:func:`_series_noise_ok`); None when the series needs
-    more than SERIES_MAX_TERMS terms. Cached with the tables (its arrays read-only)."""
-    key = ("series",) + _model_key(model)
-    hit = _cache_get(key)
-    if hit is not None:
-        return hit[2]
+    more than SERIES_MAX_TERMS terms. Cached (at most ``_TABLE_CACHE_MAX_ENTRIES`` models,
+    a few kB each, under the tables' lock; its arrays read-only)."""
+    key = _model_key(model)
+    with _TABLE_CACHE_LOCK:
+        if key in _SERIES_CACHE:
+            _SERIES_CACHE.move_to_end(key)
+            return _SERIES_CACHE[key]
     n = _SERIES_GRID
     grid = -np.pi + TWO_PI * np.arange(n) / n
     phi = model._invert(grid)  # the true phases
@@ -129,7 +133,13 @@ def _model_series(model: PhaseErrorModel):
     if series is not None:
         nf = 1.0 / (1.0 + model.slope(phi))
         series = (*series, _series_noise_ok(series, nf))
-    _cache_put(key, (np.zeros(0), np.zeros(0), series))
+        for arr in series[:2]:
+            arr.flags.writeable = False
+    with _TABLE_CACHE_LOCK:
+        _SERIES_CACHE[key] = series
+        _SERIES_CACHE.move_to_end(key)
+        while len(_SERIES_CACHE) > _TABLE_CACHE_MAX_ENTRIES:
+            _SERIES_CACHE.popitem(last=False)
     return series
 
 
