@@ -61,8 +61,8 @@ def main() -> None:
                                      "   FAILS"))
         for f in res.steps:
             print(_row(f) + ("   OK" if abs(f.z_score) <= 3 else "   FAILS"))
-        if res.sphere is not None:
-            print(_row(res.sphere) + ("   OK" if abs(res.sphere.z_score) <= 3 else "   FAILS"))
+        for f in ([res.sphere] if res.sphere is not None else []) + list(res.sphere_centre):
+            print(_row(f) + ("   OK" if abs(f.z_score) <= 3 else "   FAILS"))
         print(f"  ({wall:.0f} s wall, {cpu:.0f} s CPU of this process; the machine is "
               "shared, so wall time is disturbed)")
 

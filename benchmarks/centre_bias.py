@@ -32,9 +32,33 @@ class _Captured(Exception):
     pass
 
 
+#: what the observations depend on (a change makes new ones): every package they pass
+#: through, and the module that reads them and calls the calibration
+OBSERVATION_SOURCES = ("geometry", "devices", "fringes", "targets", "simulate",
+                       "calibration/from_scans.py")
+
+
+def code_digest(sources=OBSERVATION_SOURCES) -> str:
+    """A short digest of telefringe's sources under ``sources`` (sub-packages or files
+    relative to the package): cached results made by other code are never reused."""
+    import hashlib
+
+    import telefringe
+
+    root = Path(telefringe.__file__).parent
+    h = hashlib.sha256()
+    for sub in sources:
+        p = root / sub
+        for f in (sorted(p.rglob("*.py")) if p.is_dir() else [p]):
+            h.update(f.relative_to(root).as_posix().encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:10]
+
+
 def observations(vrig, preset: str, seed: int, n_poses: int, cache: Path):
-    """(args, kwargs) of the calibrate_devices call calibrate_from_scans makes, cached."""
-    path = cache / f"obs_{preset}_p{n_poses}_s{seed:03d}.pkl"
+    """(args, kwargs) of the calibrate_devices call calibrate_from_scans makes, cached
+    (under the digest of the code that makes them)."""
+    path = cache / f"obs_{preset}_p{n_poses}_s{seed:03d}_{code_digest()}.pkl"
     if path.exists():
         return pickle.loads(path.read_bytes())
     import telefringe.calibration.from_scans as fs

@@ -12,7 +12,8 @@ for every rig, so the spread is the calibration's alone), their ratio, and the c
 the share of (rig, quantity) cases where |measured - true| <= U = 2 u (u with the noise
 part). Goals (issue 13): ratio within 1 +- 0.25, coverage >= 90 %.
 
-    .venv/bin/python benchmarks/uncertainty.py [--seeds 24] [--poses 6] [--cache DIR]
+    .venv/bin/python benchmarks/uncertainty.py [--seeds 40] [--poses 6] [--cache DIR]
+        [--only plate,steps,sphere,bga]
 """
 
 from __future__ import annotations
@@ -26,38 +27,35 @@ from pathlib import Path
 
 import numpy as np
 
-DECODE = {"gamma_correction": False}
+DECODE = {"gamma_correction": False}  # as benchmarks/centre_bias.py's calibrations
 
 
 def calibrate_seeds(cache: Path, seeds, n_poses: int, *, log=print):
-    """Calibrate the ``fast`` rig once per seed (random poses and noise), cached in
-    ``cache``."""
-    from telefringe.calibration.from_scans import calibrate_from_scans
+    """Calibrate the ``fast`` rig once per seed (random poses and noise). The observations
+    (detected centres, projector read there: the call calibrate_from_scans makes) are
+    cached in ``cache`` under the digest of the code making them
+    (benchmarks/centre_bias.py), the calibrations under the digest of the calibration
+    too: a changed calibration only calibrates again."""
+    from centre_bias import code_digest, observations
+
+    from telefringe.calibration.rig import calibrate_devices
     from telefringe.io.rig_json import load_rig, save_rig
-    from telefringe.simulate.calibration import (
-        calibration_manifest,
-        iter_calibration_set,
-        simulate_calibration_poses,
-    )
     from telefringe.simulate.presets import get_preset
 
     vrig = get_preset("fast")
     cache.mkdir(parents=True, exist_ok=True)
+    digest = code_digest(("geometry", "devices", "fringes", "targets", "simulate",
+                          "calibration"))
     rigs = []
     for s in seeds:
-        path = cache / f"rig_fast_p{n_poses}_poses_and_noise_s{s:03d}.json"
+        path = cache / f"rig_fast_p{n_poses}_poses_and_noise_s{s:03d}_{digest}.json"
         if not path.exists():
             # poses drawn anew with the noise: a fixed pose set would keep the same
             # systematic part of the observations' errors (which the covariance, scaled by
             # the residuals, holds) in every calibration, out of the spread
-            poses = simulate_calibration_poses(vrig, n_poses=n_poses, seed=s)
-            man = calibration_manifest(vrig, poses)
             t0 = time.process_time()
-            scans = ((name, scan) for name, scan, _, _ in
-                     iter_calibration_set(vrig, poses, seed=1000 + s))
-            cal = calibrate_from_scans(scans, man.target, man.camera_pixel_size,
-                                       man.projector_pixel_size, man.reference_pose,
-                                       projector_side="right", decode_options=DECODE)
+            args, kwargs = observations(vrig, "fast", s, n_poses, cache)
+            cal = calibrate_devices(*args, **kwargs)
             save_rig(path, cal, force=True)
             log(f"calibrated seed {s}: rms {cal.rms_camera:.4f} / {cal.rms_projector:.4f} px, "
                 f"{time.process_time() - t0:.0f} s CPU")
@@ -93,7 +91,7 @@ def held_out_scenes(vrig):
     from telefringe.simulate.experiments import bga_window, unbin_rig
     from telefringe.simulate.presets import HDR_EXPOSURES
     from telefringe.simulate.render import default_groups, render_scan
-    from telefringe.simulate.scenes import Sphere, default_bga, default_steps, plate_from_target
+    from telefringe.simulate.scenes import default_bga, default_steps, plate_from_target
 
     groups = default_groups(vrig)
     out = {}
@@ -108,10 +106,7 @@ def held_out_scenes(vrig):
     scan, _ = render_scan(vrig, steps, groups, seed=502)
     out["steps"] = dict(coords=decode(scan, **DECODE),
                         heights=np.concatenate([[0.0], np.asarray(steps.blocks)[:, 5]]))
-    sph = Sphere(center=np.array([15.0, 12.0, -1.0]), radius=2.5)
-    scan, _ = render_scan(vrig, sph, groups, seed=503)
-    out["sphere"] = dict(coords=decode(scan, **DECODE), centre=np.asarray(sph.center),
-                         radius=sph.radius)
+    out["sphere"] = sphere_scene(vrig)
     bga = default_bga(0, rows=10, cols=10, n_missing=2)
     fine = replace(vrig, rig=unbin_rig(vrig.rig, 4))
     col0, row0 = bga_window(fine, size=BGA_WINDOW)
@@ -123,9 +118,28 @@ def held_out_scenes(vrig):
     return out
 
 
-def measure_all(cal, scenes):
-    """Measure every held-out scene with one calibration: list of (quantity, value,
-    truth, u_noise, u_cal) rows (arrays flattened)."""
+def sphere_scene(vrig):
+    """The held-out sphere: decoded coordinates, the brightness (the fringes' mean level)
+    and the finest fringe periods, which the sphere's point-spread model needs."""
+    from telefringe.fringes.decode import decode
+    from telefringe.fringes.images import scan_radiance
+    from telefringe.metrology.spheres import finest_fringe_periods
+    from telefringe.simulate.render import default_groups, render_scan
+    from telefringe.simulate.scenes import Sphere
+
+    sph = Sphere(center=np.array([15.0, 12.0, -1.0]), radius=2.5)
+    scan, _ = render_scan(vrig, sph, default_groups(vrig), seed=503)
+    return dict(coords=decode(scan, **DECODE), centre=np.asarray(sph.center),
+                radius=sph.radius, radiance=scan_radiance(scan),
+                periods=finest_fringe_periods(scan.manifest))
+
+
+SCENES = ("plate", "steps", "sphere", "bga")
+
+
+def measure_all(cal, scenes, only=SCENES):
+    """Measure the held-out scenes named in ``only`` with one calibration: list of
+    (quantity, value, truth, u_noise, u_cal) rows (arrays flattened)."""
     from telefringe.metrology import (
         BGANominal,
         BGAOptions,
@@ -153,33 +167,42 @@ def measure_all(cal, scenes):
                      np.broadcast_to(np.ravel(unc.u_noise), v.shape),
                      np.broadcast_to(np.ravel(unc.u_calibration), v.shape)))
 
-    s = scenes["plate"]
-    cloud = triangulate(cal.rig, s["coords"])
-    if "det" not in s:
-        s["det"] = detect_circle_grid(s["texture"], rows=9, cols=11)
-    m = plate_uncertainty(measure_plate(cloud, s["det"].centers, rows=9, cols=11,
-                                        pitch_mm=3.0), cloud, cal)
-    n_t = s["normal"] * np.sign(s["normal"][2])
-    pa = np.asarray(m.z.at)
-    z_true = (n_t @ s["point"] - n_t[0] * pa[0] - n_t[1] * pa[1]) / n_t[2]
-    add("plate Z", m.uncertainty["z"], z_true)
-    add("plate tilt (deg)", m.uncertainty["tilt_deg"], np.degrees(np.arccos(n_t[2])))
-    add("marker spacing X", m.uncertainty["spacing_x"], 3.0)
-    add("marker spacing Y", m.uncertainty["spacing_y"], 3.0)
+    if "plate" in only:
+        s = scenes["plate"]
+        cloud = triangulate(cal.rig, s["coords"])
+        if "det" not in s:
+            s["det"] = detect_circle_grid(s["texture"], rows=9, cols=11)
+        # the detected centres corrected through the rig's camera (markers 1.5 mm across)
+        m = plate_uncertainty(measure_plate(cloud, s["det"].centers, rows=9, cols=11,
+                                            pitch_mm=3.0, camera=cal.rig.camera,
+                                            marker_diameter_mm=1.5), cloud, cal)
+        n_t = s["normal"] * np.sign(s["normal"][2])
+        pa = np.asarray(m.z.at)
+        z_true = (n_t @ s["point"] - n_t[0] * pa[0] - n_t[1] * pa[1]) / n_t[2]
+        add("plate Z", m.uncertainty["z"], z_true)
+        add("plate tilt (deg)", m.uncertainty["tilt_deg"], np.degrees(np.arccos(n_t[2])))
+        add("marker spacing X", m.uncertainty["spacing_x"], 3.0)
+        add("marker spacing Y", m.uncertainty["spacing_y"], 3.0)
 
-    s = scenes["steps"]
-    cloud = triangulate(cal.rig, s["coords"])
-    m = steps_uncertainty(measure_steps(cloud), cloud, cal)
-    if m.heights.size == s["heights"].size:
-        add("step heights", m.uncertainty["step_heights"], np.diff(s["heights"]))
-        add("level heights (above base)", _skip0(m.uncertainty["heights"]), s["heights"][1:])
+    if "steps" in only:
+        s = scenes["steps"]
+        cloud = triangulate(cal.rig, s["coords"])
+        m = steps_uncertainty(measure_steps(cloud), cloud, cal)
+        if m.heights.size == s["heights"].size:
+            add("step heights", m.uncertainty["step_heights"], np.diff(s["heights"]))
+            add("level heights (above base)", _skip0(m.uncertainty["heights"]),
+                s["heights"][1:])
 
-    s = scenes["sphere"]
-    cloud = triangulate(cal.rig, s["coords"])
-    m = sphere_uncertainty(measure_sphere(cloud), cloud, cal)
-    add("sphere radius", m.uncertainty["radius"], s["radius"])
-    add("sphere centre", m.uncertainty["centre"], s["centre"])
+    if "sphere" in only:
+        s = scenes["sphere"]
+        cloud = triangulate(cal.rig, s["coords"])
+        m = sphere_uncertainty(measure_sphere(cloud, rig=cal.rig, image=s["radiance"],
+                                              fringe_periods=s["periods"]), cloud, cal)
+        add("sphere radius", m.uncertainty["radius"], s["radius"])
+        add("sphere centre", m.uncertainty["centre"], s["centre"])
 
+    if "bga" not in only:
+        return rows
     s = scenes["bga"]
     bga = s["bga"]
     cal_w = _bga_calibration(cal, *s["window"])
@@ -262,16 +285,27 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", type=Path,
                     default=Path(tempfile.gettempdir()) / "telefringe-uncertainty")
     ap.add_argument("--calibrate-only", action="store_true")
+    ap.add_argument("--only", default=",".join(SCENES),
+                    help="comma-separated held-out scenes to measure (default: all of "
+                    f"{', '.join(SCENES)})")
     args = ap.parse_args(argv)
+    only = tuple(x.strip() for x in args.only.split(",") if x.strip())
+    if not only or any(x not in SCENES for x in only):
+        ap.error(f"--only takes a comma-separated subset of {', '.join(SCENES)}")
     vrig, rigs = calibrate_seeds(args.cache, range(args.seeds), args.poses)
     if args.calibrate_only:
         return 0
     t0 = time.process_time()
     import pickle
 
-    scene_file = args.cache / "held_out_scenes.pickle"
+    from centre_bias import code_digest
+
+    scene_file = args.cache / f"held_out_scenes_{code_digest()}.pickle"
     if scene_file.exists():
         scenes = pickle.loads(scene_file.read_bytes())
+        if "radiance" not in scenes["sphere"]:  # a cache from before the sphere's model
+            scenes["sphere"] = sphere_scene(vrig)
+            scene_file.write_bytes(pickle.dumps(scenes))
     else:
         scenes = held_out_scenes(vrig)
         scene_file.write_bytes(pickle.dumps(scenes))
@@ -280,10 +314,10 @@ def main(argv=None) -> int:
     per_rig = []
     t0 = time.process_time()
     for k, cal in enumerate(rigs):
-        per_rig.append(measure_all(cal, scenes))
+        per_rig.append(measure_all(cal, scenes, only))
         print(f"rig {k + 1}/{len(rigs)} measured", file=sys.stderr, flush=True)
     print(f"measured with {len(rigs)} rigs: {time.process_time() - t0:.0f} s CPU")
-    reference = measure_all(_true_calibration(rigs[0], vrig), scenes)
+    reference = measure_all(_true_calibration(rigs[0], vrig), scenes, only)
     rows = table(per_rig, reference)
     print(f"\nfast rig, {args.poses} calibration poses, N = {len(rigs)} calibrations "
           f"(each its own random poses and noise); um unless noted\n")

@@ -171,6 +171,30 @@ def test_accept_refuses_bad_input_in_one_line(accepted, capsys):
     assert not (tmp / "other.json").exists()
 
 
+def test_accept_with_the_gamma_learned_on_tiny_scans_reports_it(accepted, capsys):
+    """On plane_02 of this set the gamma fit used to learn a model its own check passed
+    but that could not be inverted: an uncaught ValueError. It must measure (the fit now
+    keeps its model provably invertible) and say what the fit could not decide."""
+    import shutil
+
+    tmp, argv = accepted
+    src = tmp / "sim" / "acceptance"
+    one = tmp / "gamma_set"
+    shutil.copytree(src / "plane_02", one / "plane_02")
+    from telefringe.io.acceptance_json import write_acceptance_set
+
+    write_acceptance_set(one, [("plane_02", "plane", "tilted")])
+    capsys.readouterr()
+    rc = main(["accept", str(one), "--rig", str(tmp / "rig.json"), "--artefacts",
+               str(tmp / "sim" / "artefacts.json"), "--json", str(tmp / "gamma.json")])
+    out = capsys.readouterr()
+    assert rc == 0
+    text = " ".join((out.out + out.err).split())
+    assert "projector nonlinearity learned from 1 of 1 scans is incomplete" in text
+    res = json.loads((tmp / "gamma.json").read_text())
+    assert res["gamma_warnings"]["plane_02"] and 0 < res["F"]["max"] < 0.087
+
+
 def test_free_spheres_and_rect_plate_intersections():
     rng = np.random.default_rng(4)
     d = np.array([0.1, -0.2, -1.0])

@@ -163,8 +163,9 @@ def _numba_threads(n: int | None):
 
 
 # ----------------------------------------------------------------------------- measure
-def _measure(rec, options: BatchOptions):
-    """(measurement, summary dict) of a reconstruction; (None, {}) for 'none'."""
+def _measure(rec, options: BatchOptions, rig=None):
+    """(measurement, summary dict) of a reconstruction; (None, {}) for 'none'. ``rig``
+    (the rig that made it): its camera corrects the plate's detected marker centres."""
     from telefringe.io import reports
 
     m = options.measure
@@ -191,8 +192,11 @@ def _measure(rec, options: BatchOptions):
         det = detect_circle_grid(rec.texture, rows=rows, cols=cols, dark=options.dark)
         if not det:
             raise InputError(f"the {rows} x {cols} circle grid was not found: {det.reason}")
-        pm = measure_plate(cloud, det.centers, rows=rows, cols=cols,
-                           pitch_mm=3.0 if options.pitch is None else options.pitch)
+        pitch = 3.0 if options.pitch is None else options.pitch
+        # markers half the pitch across (the plate telefringe simulates, as the paper's)
+        pm = measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch,
+                           camera=None if rig is None else rig.camera,
+                           marker_diameter_mm=0.5 * pitch)
         return pm, reports.plate_summary(pm)
     from telefringe.metrology import BGANominal, BGAOptions, measure_bga
 
@@ -323,7 +327,7 @@ def _run(job: ScanJob, options: BatchOptions, key: str, t0: float) -> dict:
     t2 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        measurement, summary = _measure(rec, options)
+        measurement, summary = _measure(rec, options, rig)
     t3 = time.perf_counter()
     from telefringe.io.reports import cloud_summary
 

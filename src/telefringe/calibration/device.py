@@ -15,7 +15,7 @@ from telefringe.calibration.problem import (
     ParameterLayout,
     check_observations,
 )
-from telefringe.calibration.solver import robust_sigma
+from telefringe.calibration.solver import robust_sigma_axes
 from telefringe.calibration.starts import device_start
 from telefringe.devices.base import Device
 
@@ -137,8 +137,9 @@ def _adjust_with_rejection(build, obs_arrays, pose_lists, *, threshold, max_roun
     """Solve, reject observations whose error exceeds ``threshold`` robust sigmas, repeat.
 
     ``build(obs_list, sigmas, prev)`` -> BundleProblem, ``prev`` the (problem, x) of the
-    previous round or None. Returns (problem, x, keep masks,
-    outliers, sigmas).
+    previous round or None. Each device's noise is estimated per image axis from its
+    errors (:meth:`BundleProblem.errors`: a coupled device's given its partner's).
+    Returns (problem, x, keep masks, outliers, sigmas (per device, (sigma_u, sigma_v))).
     """
     keeps = [np.ones(o.shape[:2], dtype=bool) for o in obs_arrays]
     outliers: list[Outlier] = []
@@ -152,13 +153,14 @@ def _adjust_with_rejection(build, obs_arrays, pose_lists, *, threshold, max_roun
         prev = (problem, x)
         new_sigmas = []
         changed = False
-        for d, (o, p) in enumerate(zip(obs_list, pose_lists, strict=True)):
-            e = problem.predict(x, d) - o.uv
-            sig = max(robust_sigma(e), 1e-6)
+        for d, p in enumerate(pose_lists):
+            o = problem.obs[d]  # (a coupled device keeps the observations with a partner)
+            e = problem.errors(x, d)
+            sig = np.maximum(robust_sigma_axes(e), 1e-6)
             new_sigmas.append(sig)
             if threshold is None or not np.isfinite(threshold) or _round >= max_rounds:
                 continue
-            bad = np.flatnonzero(np.hypot(e[:, 0], e[:, 1]) > threshold * sig)
+            bad = np.flatnonzero(np.hypot(e[:, 0] / sig[0], e[:, 1] / sig[1]) > threshold)
             for b in bad:
                 i = p[o.pose[b]]
                 k = int(o.point[b])

@@ -139,7 +139,8 @@ def calibrate_from_scans(scans: Iterable, target, camera_pixel_size, projector_p
                               reference_pose=names.index(reference_pose), pose_names=names,
                               grid_shape=(rows, cols), projector_side=projector_side,
                               min_poses=min_poses, warnings=warns,
-                              marker_radius=0.5 * float(target.diameter_mm), **kwargs)
+                              marker_radius=0.5 * float(target.diameter_mm),
+                              **{"projector_at_camera_centres": True, **kwargs})
     if not learned:
         return calib
     from dataclasses import replace

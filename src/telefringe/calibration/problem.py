@@ -5,7 +5,21 @@ The parameter vector is assembled from blocks that the devices declare (their
 ``POSE_PARAMETER_NAMES`` (a left rotation perturbation, rad, and the translation T, mm,
 of ``X_world = R_world_target P + T``). Names address parameters, never positions:
 ``layout.index("camera.u0")``, ``layout.index("pose_3.z")``. Residuals: per device, per
-observation, ``(predicted - measured) / sigma`` in its pixels; then the Gaussian priors.
+observation, ``(predicted - measured) / sigma`` in its pixels (one sigma per image axis);
+then the Gaussian priors.
+
+Observations read at another device's observations (``coupled_to``): a projector's
+coordinates are read from the phase at the camera's *detected* marker centre, so the
+camera's detection error e_c moves the plate point they are read at, and the projector
+observation carries ``A e_c`` besides its own noise, ``A`` (2 x 2) the derivative of the
+projector pixel with respect to the camera pixel along the target plane (from both
+devices' point Jacobians at the current estimate). Treated as independent, the two
+observations would count that one error twice (on the fast rig ``A e_c`` is about 70 % of
+the projector observation's variance; it over-states the plate height's calibration
+uncertainty by 1.8 x, benchmarks/uncertainty.py). Such a device's residual is the
+projector's error given the camera's, ``(e_p - A e_c) / sigma_p``, exactly independent of
+the camera's to first order, with ``sigma_p`` the projector's own noise; its Jacobian rows
+hold ``-A`` times the camera's. An observation without its camera partner is dropped.
 """
 
 from __future__ import annotations
@@ -117,13 +131,17 @@ class BundleProblem:
         of the rotation perturbation (``R = R(dw) R0``).
     pose_R0 : (n_poses, 3, 3), pose_T0 : (n_poses, 3), start of the target poses.
     free : (layout.size,) bool, which parameters are estimated (default: all).
-    sigmas : sequence of float, per-device observation noise (px).
+    sigmas : sequence, per-device observation noise (px): a float (both image axes) or
+        (sigma_u, sigma_v).
     priors : sequence of (name, centre, sigma): Gaussian priors on named parameters.
     device_names : sequence of str (default "camera", "projector", "device_2", ...).
+    coupled_to : mapping device index -> device index, optional: the observations of
+        the first were read at the second's (see the module notes); held at the start's
+        state (``A`` at ``devices``, ``pose_R0``, ``pose_T0``).
     """
 
     def __init__(self, points, obs, devices: Sequence[Device], pose_R0, pose_T0, *,
-                 sigmas, free=None, priors=(), device_names=None):
+                 sigmas, free=None, priors=(), device_names=None, coupled_to=None):
         self.P = np.asarray(points, dtype=float)
         self.obs = list(obs)
         self.devices0 = list(devices)
@@ -150,7 +168,22 @@ class BundleProblem:
             raise ValueError(f"free must have {self.layout.size} entries")
         self.colmap = np.full(self.full0.size, -1)
         self.colmap[self.free] = np.arange(int(self.free.sum()))
-        self.sigmas = np.asarray(sigmas, dtype=float)
+        sig = [np.broadcast_to(np.asarray(v, dtype=float), (2,)) for v in sigmas]
+        if len(sig) != self.n_dev:
+            raise ValueError("one sigma (or pair) per device")
+        self.sigmas = np.array(sig).reshape(self.n_dev, 2)
+        self.coupled_to = {int(k): int(v) for k, v in dict(coupled_to or {}).items()}
+        self._partner: dict[int, np.ndarray] = {}
+        self._A: dict[int, np.ndarray] = {}
+        T0r = np.asarray(pose_T0, dtype=float).reshape(self.n_pose, 3)
+        for d, c in self.coupled_to.items():
+            if d == c or not (0 <= d < self.n_dev and 0 <= c < self.n_dev):
+                raise ValueError(f"coupled_to: bad device pair {d} -> {c}")
+            if c in self.coupled_to:
+                raise ValueError("coupled_to: a device read at a coupled device")
+            self.obs[d], self._partner[d] = _with_partners(self.obs[d], self.obs[c])
+            self._A[d] = _coupling(self.devices0[c], self.devices0[d], self.poseR0,
+                                   T0r, self.P, self.obs[d])
         self.priors = [(self.layout.index(n) if isinstance(n, str) else int(n), float(c),
                         float(s)) for n, c, s in priors]
         self._cache_x = None
@@ -184,13 +217,47 @@ class BundleProblem:
         u, v = devs[d].project(X)
         return np.stack([u, v], axis=1)
 
-    def _evaluate(self, x):
-        if self._cache_x is not None and np.array_equal(x, self._cache_x):
-            return self._cache
+    def _device_terms(self, x):
+        """Per device: errors (n, 2) px (predicted - measured) and the Jacobian blocks
+        (n, 2, n_device_params) and (n, 2, 6) (pose) at ``x``."""
         f = self.full(x)
         devs, R_wt, T_wt = self.unpack(x)
         pose = f[self.layout.n_device_params:].reshape(self.n_pose, 6)
         Jl_pose = np.array([left_jacobian(pose[i, :3]) for i in range(self.n_pose)])
+        out = []
+        for d in range(self.n_dev):
+            o = self.obs[d]
+            if o.pose.size == 0:
+                out.append(None)
+                continue
+            RP_world = np.einsum("nij,nj->ni", R_wt[o.pose], self.P[o.point])
+            uv, J_dev, J_X = devs[d].project_jacobian(RP_world + T_wt[o.pose])
+            blk = f[self.layout.device_slice(d)]
+            rot = self._rot[d]
+            # the device gives d/d(a fresh perturbation at R(dw) R0); chain it to dw
+            J_dev[:, :, rot] = J_dev[:, :, rot] @ left_jacobian(blk[rot])
+            J_pw = J_X @ (-skew(RP_world)) @ Jl_pose[o.pose]
+            out.append((uv - o.uv, J_dev, np.concatenate([J_pw, J_X], axis=2)))
+        return out
+
+    def errors(self, x, d: int) -> np.ndarray:
+        """Device ``d``'s observation errors (n, 2) px at ``x``, predicted - measured; for
+        a coupled device its error given its partner's, ``e - A e_partner`` (the part
+        independent of the partner's, whose spread is its own noise)."""
+        terms = self._device_terms(x)
+        if terms[d] is None:
+            return np.zeros((0, 2))
+        e = terms[d][0]
+        if d in self.coupled_to:
+            e = e - np.einsum("nij,nj->ni", self._A[d],
+                              terms[self.coupled_to[d]][0][self._partner[d]])
+        return e
+
+    def _evaluate(self, x):
+        if self._cache_x is not None and np.array_equal(x, self._cache_x):
+            return self._cache
+        f = self.full(x)
+        terms = self._device_terms(x)
         res, rows, cols, vals = [], [], [], []
         row0 = 0
         npose = len(POSE_PARAMETER_NAMES)
@@ -199,24 +266,29 @@ class BundleProblem:
             n = o.pose.size
             if n == 0:
                 continue
-            RP_world = np.einsum("nij,nj->ni", R_wt[o.pose], self.P[o.point])
-            uv, J_dev, J_X = devs[d].project_jacobian(RP_world + T_wt[o.pose])
-            s = self.sigmas[d]
-            res.append(((uv - o.uv) / s).ravel())
-            blk = f[self.layout.device_slice(d)]
-            rot = self._rot[d]
-            # the device gives d/d(a fresh perturbation at R(dw) R0); chain it to dw
-            J_dev[:, :, rot] = J_dev[:, :, rot] @ left_jacobian(blk[rot])
-            J_pw = J_X @ (-skew(RP_world)) @ Jl_pose[o.pose]
-            blocks = np.concatenate([J_dev, J_pw, J_X], axis=2) / s
+            e, J_dev, J_pose = terms[d]
             nb = J_dev.shape[2]
             c_dev = self.layout.device_slice(d).start + np.arange(nb)
             c_pose = (self.layout.n_device_params + npose * o.pose[:, None]
                       + np.arange(npose)[None, :])
-            c = np.concatenate([np.broadcast_to(c_dev, (n, nb)), c_pose], axis=1)
+            if d in self.coupled_to:
+                c = self.coupled_to[d]
+                A = self._A[d]
+                k = self._partner[d]
+                e_c, J_dev_c, J_pose_c = terms[c]
+                e = e - np.einsum("nij,nj->ni", A, e_c[k])
+                J_pose = J_pose - A @ J_pose_c[k]
+                J_dev = np.concatenate([J_dev, -(A @ J_dev_c[k])], axis=2)
+                c_dev = np.concatenate([c_dev, self.layout.device_slice(c).start
+                                        + np.arange(J_dev_c.shape[2])])
+            s = self.sigmas[d]
+            res.append((e / s).ravel())
+            blocks = np.concatenate([J_dev, J_pose], axis=2) / s[None, :, None]
+            nb = J_dev.shape[2]
+            cc = np.concatenate([np.broadcast_to(c_dev, (n, nb)), c_pose], axis=1)
             r = row0 + 2 * np.arange(n)[:, None] + np.arange(2)[None, :]  # (n, 2)
             rows.append(np.broadcast_to(r[:, :, None], blocks.shape).ravel())
-            cols.append(np.broadcast_to(c[:, None, :], blocks.shape).ravel())
+            cols.append(np.broadcast_to(cc[:, None, :], blocks.shape).ravel())
             vals.append(blocks.ravel())
             row0 += 2 * n
         for j, (idx, centre, sig) in enumerate(self.priors):
@@ -287,7 +359,38 @@ class BundleProblem:
         new = BundleProblem(self.P, self.obs, devs, R_wt, T_wt, sigmas=self.sigmas,
                             free=self.free, priors=self.priors,
                             device_names=self.layout.device_names)
+        # the same coupling (A held where this problem held it: rebasing moves no point)
+        new.coupled_to = dict(self.coupled_to)
+        new._partner = dict(self._partner)
+        new._A = dict(self._A)
         return new, new.x0
+
+
+def _with_partners(obs: Observations, ref: Observations):
+    """``obs`` restricted to the observations ``ref`` also has (same pose and point), and
+    for each the index of its partner in ``ref``."""
+    if ref.pose.size == 0 or obs.pose.size == 0:
+        return Observations(obs.pose[:0], obs.point[:0], obs.uv[:0]), np.zeros(0, dtype=int)
+    m = int(max(ref.point.max(), obs.point.max())) + 1
+    key_ref = ref.pose.astype(np.int64) * m + ref.point
+    key = obs.pose.astype(np.int64) * m + obs.point
+    order = np.argsort(key_ref, kind="stable")
+    pos = np.minimum(np.searchsorted(key_ref[order], key), key_ref.size - 1)
+    has = key_ref[order][pos] == key
+    return Observations(obs.pose[has], obs.point[has], obs.uv[has]), order[pos[has]]
+
+
+def _coupling(ref_dev: Device, dev: Device, R_wt, T_wt, P, obs: Observations) -> np.ndarray:
+    """(n, 2, 2): d(dev pixel)/d(ref_dev pixel) for a point moving in the target plane of
+    each observation's pose, ``Jd T (Jr T)^-1`` (T the plane's two axes)."""
+    if obs.pose.size == 0:
+        return np.zeros((0, 2, 2))
+    R = R_wt[obs.pose]
+    X = np.einsum("nij,nj->ni", R, P[obs.point]) + T_wt[obs.pose]
+    _, _, Jr = ref_dev.project_jacobian(X)
+    _, _, Jd = dev.project_jacobian(X)
+    Tp = R[:, :, :2]
+    return (Jd @ Tp) @ np.linalg.inv(Jr @ Tp)
 
 
 def check_observations(points_target, observations, what="observations"):

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from telefringe.calibration.centres import circle_image_centres
 from telefringe.calibration.device import (
     DeviceCalibration,
     Outlier,
@@ -67,6 +68,9 @@ class DeviceReport:
     rms : float, px (2-D length); rms_per_pose : (n_poses,) px, NaN for unused poses.
     principal_point_weak : bool.
     alone : DeviceCalibration or None, its calibration alone (the start).
+    sigma_uv : (2,) ndarray, px, the noise of each image axis (``sigma`` is their RMS);
+        for a projector read at the camera's detected centres, its own noise (the part
+        independent of the camera's detection error).
     """
 
     model: str
@@ -77,6 +81,7 @@ class DeviceReport:
     rms_per_pose: np.ndarray
     principal_point_weak: bool
     alone: DeviceCalibration | None = field(default=None, repr=False)
+    sigma_uv: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,7 +108,10 @@ class RigCalibration:
         (scaled by the reduced chi-square; NaN rows/columns for fixed parameters).
     std : (n_params,) ndarray, sqrt of the covariance's diagonal.
     sigma_camera, sigma_projector : float, px, per-coordinate noise estimated from the
-        residuals (the weights of the adjustment).
+        residuals (the weights of the adjustment; the RMS of the two image axes, each
+        weighted by its own: ``devices[name].sigma_uv``). A projector read at the
+        camera's detected centres (``projector_at_camera_centres``) has here its own
+        noise, without the part the camera's detection error puts in it.
     residuals_camera, residuals_projector : (n_poses, n_points, 2) ndarray, px
         (predicted - observed); NaN where not observed, rejected or unused.
     rms_camera, rms_projector : float, px, RMS reprojection error (2-D length).
@@ -276,7 +284,8 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
                       min_poses: int = 4, min_points: int = 6,
                       warnings: Sequence[str] = (),
                       marker_radius: float | None = None,
-                      centre_bias: str = "perspective") -> RigCalibration:
+                      centre_bias: str = "full",
+                      projector_at_camera_centres: bool = False) -> RigCalibration:
     """Joint calibration of any devices (one or two cameras, an optional projector).
 
     Each device is calibrated alone with the closed-form start of its model
@@ -297,23 +306,27 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
         bias of the circle centres is corrected: the centre of a circle's image (what a
         detector measures) is not the image of its centre, through perspective (the
         eccentricity of a pinhole camera) and through the curvature of lens distortion
-        (any model: a distorted circle's image is not an ellipse about the projected
-        centre; under radial distortion x (1 + k1 r^2) a disc's image centroid moves
-        by 3 k1 rho^2 times its distance from the axis, rho the circle's radius on the
-        sensor: a magnification error, 2.6e-5 on the fast rig's camera). With the current estimate
+        (any model; :mod:`telefringe.calibration.centres`). With the current estimate
         each camera's observations are corrected by the centre of its own (full-model)
         image of the circle minus the image of the centre, and the projector's, read
         through the first camera's phase at that camera's image centre, by the
         projector's image of the plate point seen there minus that of the centre; the
         adjustment is then repeated (twice). Residuals are those of the corrected
         observations. None: no correction.
-    centre_bias : "perspective" (default) or "full". "perspective" corrects only the
-        cameras that see depth (pinhole), as before; "full" corrects every camera for the
-        distortion curvature as well (telecentric included: on rendered calibrations of the
-        `fast` rig the camera magnification bias goes from +4.8 to -0.04 of its sigma,
-        benchmarks/centre_bias.py). Not yet the default: the circle plate's measurement
-        (metrology.plate) reads the cloud at the detected, equally biased centres and is not
-        corrected yet, so its spacing errors grow when the calibration is unbiased.
+    centre_bias : "full" (default) or "perspective". "full" corrects every camera for
+        the distortion curvature and perspective (on rendered calibrations of the `fast`
+        rig the camera magnification bias goes from +4.8 to -0.04 of its sigma,
+        benchmarks/centre_bias.py); "perspective" only the cameras that see depth
+        (pinhole), as earlier versions did (kept to compare). A plate measured
+        from detected centres needs the same correction
+        (:func:`telefringe.metrology.plate.measure_plate` with the camera).
+    projector_at_camera_centres : bool
+        The projector's observations were read from the phase at the first camera's
+        detected centres (what :func:`~telefringe.calibration.from_scans.calibrate_from_scans`
+        does): the camera's detection error is then in the projector's observation too,
+        and the adjustment takes the projector's error given the camera's
+        (:mod:`telefringe.calibration.problem`), weighted by the projector's own noise
+        (``sigma_projector`` is then that part). False: independent observations.
     Others : as :func:`calibrate_rig`.
 
     Returns
@@ -418,14 +431,19 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
             priors += [(ppn[0], centre[0], sig), (ppn[1], centre[1], sig)]
     sig0 = [max(alone[d].rms, 1e-6) / np.sqrt(2) for d in names_d]
 
+    # the projector read at the first camera's detected centres: its error given the
+    # camera's (problem.py's module notes)
+    coupled = ({proj_index: 0} if projector_at_camera_centres and proj_index is not None
+               else None)
+
     def build(obs_list, sigmas, prev):
         if prev is None:
             return BundleProblem(P, obs_list, devs0, R_wt, T, sigmas=sig0, free=free,
-                                 priors=priors, device_names=names_d)
+                                 priors=priors, device_names=names_d, coupled_to=coupled)
         devs, R_wt_prev, T_wt_prev = prev[0].unpack(prev[1])
         return BundleProblem(P, obs_list, devs, R_wt_prev, T_wt_prev,
                              sigmas=sig0 if sigmas is None else sigmas, free=free,
-                             priors=priors, device_names=names_d)
+                             priors=priors, device_names=names_d, coupled_to=coupled)
 
     problem, x, keeps, outliers, sigmas = _adjust_with_rejection(
         build, [obs[d] for d in names_d], [poses] * len(names_d),
@@ -488,7 +506,9 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
     T_all[poses] = T_wt_final
     used = np.zeros(n_poses, dtype=bool)
     used[poses] = True
-    reports = {d: DeviceReport(model=devs[k].model, sigma=float(sigmas[k]),
+    reports = {d: DeviceReport(model=devs[k].model,
+                               sigma=float(np.sqrt(np.mean(np.square(sigmas[k])))),
+                               sigma_uv=np.array(sigmas[k], dtype=float),
                                observations=obs[d].copy(), residuals=residuals[k],
                                rms=rms[k][0], rms_per_pose=rms[k][1],
                                principal_point_weak=bool(weak[k]), alone=alone[d])
@@ -519,21 +539,13 @@ def calibrate_devices(points_target, observations: Mapping[str, np.ndarray], *,
             camera_2_observations=reports["camera_2"].observations)))
 
 
-def _circle_image_centre(dev, R, T, centres_target, radius, n: int = 64):
+def _circle_image_centre(dev, R, T, centres_target, radius):
     """Centres (m, 2) px of the images of circles of ``radius`` mm centred at
     ``centres_target`` (m, 3) on the target plane at pose (R (m, 3, 3), T (m, 3)): the
-    area centroids of the projected boundaries (the ellipse centre without distortion)."""
-    th = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
-    ring = np.stack([np.cos(th), np.sin(th), np.zeros(n)], axis=1) * radius  # (n, 3)
-    pts = centres_target[:, None, :] + ring[None, :, :]                      # (m, n, 3)
-    X = np.einsum("mij,mnj->mni", R, pts) + T[:, None, :]
-    u, v = dev.project(X)
-    un, vn = np.roll(u, -1, axis=1), np.roll(v, -1, axis=1)
-    cr = u * vn - un * v
-    A = cr.sum(axis=1) / 2.0
-    cx = ((u + un) * cr).sum(axis=1) / (6.0 * A)
-    cy = ((v + vn) * cr).sum(axis=1) / (6.0 * A)
-    return np.stack([cx, cy], axis=1)
+    area centroids of their images through ``dev``'s full model
+    (:func:`telefringe.calibration.centres.circle_image_centres`)."""
+    X = np.einsum("mij,mj->mi", R, centres_target) + T
+    return circle_image_centres(dev, X, R[:, :, 2], radius)
 
 
 def _eccentricity(problem: BundleProblem, x, names_d, poses, shape, radius, *, full=False):

@@ -8,7 +8,7 @@ import numpy as np
 
 from telefringe.calibration.errors import CalibrationError
 
-__all__ = ["LMResult", "levenberg_marquardt", "robust_sigma"]
+__all__ = ["LMResult", "levenberg_marquardt", "robust_sigma", "robust_sigma_axes"]
 
 
 @dataclass(frozen=True)
@@ -83,3 +83,11 @@ def robust_sigma(e: np.ndarray) -> float:
     if e.size == 0:
         return float("nan")
     return float(1.4826 * np.median(np.abs(e - np.median(e, axis=0))))
+
+
+def robust_sigma_axes(e: np.ndarray) -> np.ndarray:
+    """Robust standard deviation (2,) of each coordinate of 2-D errors ``e`` (n, 2)
+    (MAD); NaN for no errors."""
+    if e.size == 0:
+        return np.full(2, np.nan)
+    return 1.4826 * np.median(np.abs(e - np.median(e, axis=0)), axis=0)

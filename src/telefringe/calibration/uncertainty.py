@@ -19,9 +19,12 @@ line, minimises the weighted projector misfit ``sum_a w_a (projector.project(X)_
 p_a)^2`` (u only: ``w_v = 0``; both axes: the triangulator's weights ``1 / sigma_a^2``).
 The implicit function theorem gives ``dX/dtheta`` from the devices'
 ``project_jacobian`` alone, at ``X`` (the observed ``c`` and ``p`` are implied by ``X``
-to first order; the misfit's own residual enters at second order only). Other rigs (e.g.
-two cameras) can use :func:`point_jacobian_fd`: central differences through a
-re-triangulation the caller passes in.
+to first order; the misfit's own residual enters at second order only). Points matched
+between two cameras (stereo) take the same form with the second camera in the
+projector's place and the image metric of the matching (:func:`stereo_calibration`):
+the two-ray triangulation through both cameras' parameters. Other rigs can use
+:func:`point_jacobian_fd`: central differences through a re-triangulation the caller
+passes in.
 
 World-frame gauge: the world frame is the calibration target at its reference pose (its
 pose is held fixed in the adjustment, six parameters that are not estimated); every
@@ -42,7 +45,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from telefringe.geometry.interpolation import bilinear
+
 __all__ = [
+    "StereoCalibration",
+    "stereo_calibration",
     "covariance_factor",
     "point_jacobian",
     "point_jacobian_fd",
@@ -61,8 +68,9 @@ def _devices(rig):
     cam = getattr(inner, "camera", None)
     proj = getattr(inner, "projector", None)
     if cam is None or proj is None:
-        raise ValueError("the rig needs a camera and a projector for point_jacobian (other "
-                         "rigs: point_jacobian_fd with their own triangulation)")
+        raise ValueError("the rig needs a camera and a projector for point_jacobian (two "
+                         "cameras: stereo_calibration; other rigs: point_jacobian_fd with "
+                         "their own triangulation)")
     return cam, proj
 
 
@@ -109,33 +117,61 @@ def point_jacobian(rig, xyz, *, weight_v=None) -> np.ndarray:
 
     Parameters
     ----------
-    rig : Rig, or RigCalibration (any Device models for camera and projector).
+    rig : Rig, or RigCalibration (any Device models for camera and projector), or a
+        :class:`StereoCalibration` (:func:`stereo_calibration`: points matched between
+        two cameras).
     xyz : (n, 3) array_like, mm, triangulated points (world frame); finite.
     weight_v : float or (n,) array_like, optional
         Weight of the projector's v coordinate relative to its u coordinate in the
         triangulation, ``(sigma_u_p / sigma_v_p)^2``: None or 0 when the points were
         triangulated from u_p alone, 1 for both axes with equal uncertainties (what the
-        triangulator does without the decoder's sigmas).
+        triangulator does without the decoder's sigmas). Not used for stereo points
+        (their weights are in the :class:`StereoCalibration`).
 
     Returns
     -------
     (n, 3, n_params) ndarray, mm per parameter unit, parameters in the order of
-    ``camera.param_names`` then ``projector.param_names`` (``RigCalibration.parameter_names``).
+    ``camera.param_names`` then ``projector.param_names`` (``RigCalibration.parameter_names``;
+    a rig with two cameras: ``camera``, ``camera_2``, then ``projector`` where it has one,
+    the devices a point does not depend on with zero columns).
 
     Raises
     ------
     ValueError
         A point where the camera line does not cross the projector's coordinates (its
-        projector coordinates do not change along the camera's line).
+        projector coordinates do not change along the camera's line); a two-camera rig
+        not given as a :class:`StereoCalibration` (how its points were triangulated is
+        then unknown).
     """
+    if isinstance(rig, StereoCalibration):
+        return _stereo_point_jacobian(rig, xyz)
+    inner = getattr(rig, "rig", rig)
+    if len(getattr(inner, "cameras", ())) > 1:
+        raise ValueError("a rig with two cameras: its points were matched between the "
+                         "cameras, and their calibration part needs the second camera's "
+                         "decoded coordinates (stereo_calibration / "
+                         "metrology.uncertainty.for_stereo), which a points file does not "
+                         "hold")
     cam, proj = _devices(rig)
     X = np.asarray(xyz, dtype=np.float64)
     if X.ndim != 2 or X.shape[1] != 3:
         raise ValueError(f"xyz must have shape (n, 3), got {X.shape}")
     n = X.shape[0]
     wv = _weights(weight_v, n)
+    metric = np.zeros((n, 2, 2))
+    metric[:, 0, 0] = 1.0
+    metric[:, 1, 1] = wv
+    dX_c, dX_p = _line_jacobian(cam, proj, X, metric)
+    return np.concatenate([dX_c, dX_p], axis=2)
+
+
+def _line_jacobian(cam, other, X, metric):
+    """dX/dtheta of points ``X`` (n, 3) fixed on ``cam``'s line through their (exact)
+    pixel, placed along it by minimising ``r^T M r`` with ``r`` the change of their
+    image in ``other`` (a projector, or the second camera of a stereo pair) and ``M`` the
+    (n, 2, 2) ``metric``. Returns (dX/dtheta_cam (n, 3, Pc), dX/dtheta_other (n, 3, Po))."""
     _, Jc_p, Jc_X = cam.project_jacobian(X)  # (n, 2, Pc), (n, 2, 3)
-    _, Jp_p, Jp_X = proj.project_jacobian(X)
+    _, Jp_p, Jp_X = other.project_jacobian(X)
     # the camera line's direction: the null vector of the camera's point Jacobian
     d = np.cross(Jc_X[:, 0], Jc_X[:, 1])
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -148,20 +184,139 @@ def point_jacobian(rig, xyz, *, weight_v=None) -> np.ndarray:
     y0 = (c[:, None] * Jc_p[:, 0] - b[:, None] * Jc_p[:, 1]) / det[:, None]
     y1 = (a[:, None] * Jc_p[:, 1] - b[:, None] * Jc_p[:, 0]) / det[:, None]
     dX0_c = -(r0[:, :, None] * y0[:, None, :] + r1[:, :, None] * y1[:, None, :])
-    g = np.einsum("nij,nj->ni", Jp_X, d)  # (n, 2) projector px per mm along the line
-    w = np.stack([np.ones(n), wv], axis=1)
-    gwg = np.sum(w * g * g, axis=1)
-    scale = np.max(np.abs(Jp_X), axis=(1, 2))
+    g = np.einsum("nij,nj->ni", Jp_X, d)  # (n, 2) image px per mm along the line
+    Mg = np.einsum("nij,nj->ni", metric, g)
+    gwg = np.sum(g * Mg, axis=1)
+    scale = np.max(np.abs(Jp_X), axis=(1, 2)) * np.sqrt(
+        np.max(np.abs(metric), axis=(1, 2)))
     if np.any(~(gwg > (1e-6 * scale) ** 2)):
         raise ValueError("the projector's coordinates do not change along the camera's line "
                          "at some points: they cannot be triangulated")
-    h = w * g / gwg[:, None]  # (n, 2): ds = -h . (d projector px)
+    h = Mg / gwg[:, None]  # (n, 2): ds = -h . (d image px)
     # camera parameters: dX = dX0 + d ds, ds = -h . (Jp_X dX0)
     hJ = np.einsum("ni,nij->nj", h, Jp_X)  # (n, 3)
     dX_c = dX0_c - d[:, :, None] * np.einsum("nj,njk->nk", hJ, dX0_c)[:, None, :]
-    # projector parameters: ds = -h . Jp_p
+    # the other device's parameters: ds = -h . Jp_p
     dX_p = -d[:, :, None] * np.einsum("ni,nik->nk", h, Jp_p)[:, None, :]
-    return np.concatenate([dX_c, dX_p], axis=2)
+    return dX_c, dX_p
+
+
+# --------------------------------------------------------------------------- stereo
+@dataclass(frozen=True, eq=False)
+class StereoCalibration:
+    """A two-camera rig's calibration together with what its stereo points were matched
+    on: the second camera's decoded projector coordinates (see
+    :func:`stereo_calibration`). Has the calibration's ``covariance``,
+    ``parameter_names`` and ``rig``, so it goes wherever a RigCalibration goes in
+    :mod:`telefringe.metrology.uncertainty`.
+
+    Attributes
+    ----------
+    calibration : RigCalibration (or anything with ``rig``, ``covariance`` and
+        ``parameter_names``) whose rig has two cameras.
+    maps : tuple of (rows, cols) ndarray, the second camera's decoded projector
+        coordinates of every axis the matching used (u_p, and v_p), projector px, NaN
+        where invalid.
+    weights : tuple of (rows, cols) ndarray or None, per axis the weight of that axis
+        (``1 / sigma^2``), or None for equal weights.
+    """
+
+    calibration: object
+    maps: tuple
+    weights: tuple | None = None
+
+    @property
+    def rig(self):
+        return getattr(self.calibration, "rig", self.calibration)
+
+    @property
+    def covariance(self):
+        return getattr(self.calibration, "covariance", None)
+
+    @property
+    def parameter_names(self):
+        return getattr(self.calibration, "parameter_names", ())
+
+    @property
+    def parameters(self):
+        return getattr(self.calibration, "parameters", None)
+
+
+def stereo_calibration(calibration, maps_2, *, sigmas_2=None) -> StereoCalibration:
+    """The calibration of a two-camera rig for the uncertainty of points matched between
+    its cameras (``telefringe reconstruct --second``,
+    :func:`~telefringe.reconstruction.stereo.match_stereo`).
+
+    A stereo point ``X`` lies on the first camera's line through its pixel (known
+    exactly), at the place where the second camera sees the same projector coordinates
+    ``p_a`` as the first (least squares over the axes ``a`` used, weights ``w_a``). A
+    change of the parameters moves that line and the second camera's image ``c2`` of
+    the point; the data (the second camera's map ``P_a``) stay, so to first order the
+    point slides along the moved line until ``sum_a w_a (g_a . dc2)^2`` is least, with
+    ``g_a`` the gradient of ``P_a`` in the second camera's image at the match: the
+    two-ray triangulation with the second ray's image metric ``M = sum_a w_a g_a
+    g_a^T``. With one axis only the component of ``dc2`` across that axis's fringes
+    counts (the match slides along a fringe). ``g_a`` is the bilinear gradient of the
+    decoded map at ``c2`` (what the matching interpolates).
+
+    Parameters
+    ----------
+    calibration : RigCalibration of a rig with two cameras (``covariance`` over
+        ``camera``, ``camera_2`` and, where calibrated, ``projector`` parameters).
+    maps_2 : (rows, cols) array_like or a sequence of them: the second camera's decoded
+        projector coordinates of each axis the matching used (u_p; and v_p when it
+        combined both axes), projector px, NaN where invalid.
+    sigmas_2 : None or a sequence like ``maps_2`` of their standard uncertainties
+        (projector px): each axis weighted by ``1 / sigma^2`` at the match; None: equal.
+
+    Returns
+    -------
+    StereoCalibration
+    """
+    inner = getattr(calibration, "rig", calibration)
+    if len(getattr(inner, "cameras", ())) < 2:
+        raise ValueError("stereo_calibration needs a rig with two cameras")
+    maps = np.asarray(maps_2, dtype=np.float64)
+    maps = (maps,) if maps.ndim == 2 else tuple(maps)
+    if not 1 <= len(maps) <= 2 or any(m.ndim != 2 or m.shape != maps[0].shape
+                                      for m in maps):
+        raise ValueError("maps_2: one or two (rows, cols) maps of the same shape")
+    w = None
+    if sigmas_2 is not None:
+        sig = np.asarray(sigmas_2, dtype=np.float64)
+        sig = (sig,) if sig.ndim == 2 else tuple(sig)
+        if len(sig) != len(maps) or any(x.shape != maps[0].shape for x in sig):
+            raise ValueError("sigmas_2 must match maps_2")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = tuple(np.where(np.isfinite(x) & (x > 0), 1.0 / (x * x), np.nan) for x in sig)
+    return StereoCalibration(calibration, tuple(m.copy() for m in maps), w)
+
+
+def _stereo_point_jacobian(stereo: StereoCalibration, xyz) -> np.ndarray:
+    X = np.asarray(xyz, dtype=np.float64)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise ValueError(f"xyz must have shape (n, 3), got {X.shape}")
+    inner = stereo.rig
+    names = tuple(inner.cameras)
+    cam1, cam2 = inner.cameras[names[0]], inner.cameras[names[1]]
+    u2, v2 = cam2.project(X)
+    metric = np.zeros((X.shape[0], 2, 2))
+    for k, A in enumerate(stereo.maps):
+        _, gu, gv, _ = bilinear(A, u2, v2)
+        g = np.stack([gu, gv], axis=1)
+        w = 1.0 if stereo.weights is None else bilinear(stereo.weights[k], u2, v2)[0]
+        metric += np.asarray(w)[..., None, None] * g[:, :, None] * g[:, None, :]
+    bad = ~np.all(np.isfinite(metric), axis=(1, 2))
+    if bad.any():
+        raise ValueError(f"{int(bad.sum())} of {X.shape[0]} points are not inside a valid "
+                         "cell of the second camera's decoded map (they cannot have been "
+                         "matched there)")
+    dX_1, dX_2 = _line_jacobian(cam1, cam2, X, metric)
+    blocks = [dX_1, dX_2] + [np.zeros((X.shape[0], 3, len(c.param_names)))
+                             for c in list(inner.cameras.values())[2:]]
+    if getattr(inner, "projector", None) is not None:
+        blocks.append(np.zeros((X.shape[0], 3, len(inner.projector.param_names))))
+    return np.concatenate(blocks, axis=2)
 
 
 def point_jacobian_fd(retriangulate: Callable, parameters, *, steps) -> np.ndarray:

@@ -41,6 +41,35 @@ def parse_mpe(text: str | None) -> dict:
     return out
 
 
+def _check_cameras(scans, rig_obj, rig_path) -> None:
+    """Each position's scans must suit the rig, as for 'reconstruct': a ``second`` scan
+    needs two cameras, a single scan a calibrated projector."""
+    from telefringe.io.errors import InputError
+
+    inner = getattr(rig_obj, "rig", rig_obj)
+    n_cams = len(getattr(inner, "cameras", ()))
+    has_proj = getattr(inner, "projector", None) is not None
+    for e in scans:
+        if e.second is not None and n_cams < 2:
+            raise InputError(f"{e.scan}: acceptance.json gives a second camera's scan "
+                             f"({e.second}) but {rig_path} has one camera")
+        if e.second is None and not has_proj:
+            raise InputError(f"{e.scan}: {rig_path} has no calibrated projector: give each "
+                             "position the second camera's scan as \"second\" in "
+                             "acceptance.json (see docs/acceptance.md)")
+
+
+def _gamma_notes(rec) -> tuple[str, ...]:
+    """What the decoder's fit of the projector nonlinearity could not decide, for every
+    camera and axis of a reconstruction (empty when it was clean or not learned)."""
+    out = []
+    for coords in (rec.coords, getattr(rec, "coords_2", None)):
+        for ax in getattr(coords, "axes", {}).values():
+            fit = getattr(ax, "phase_errors", None)
+            out.extend(f"{ax.axis}: {w}" for w in getattr(fit, "warnings", ()))
+    return tuple(dict.fromkeys(out))
+
+
 def _table(result):
     from rich.table import Table
 
@@ -96,7 +125,9 @@ def accept_cmd(
     the distances to the least-squares plane, same exclusion) on the plane, at each
     position, and their maxima; with --mpe, PASS / FAIL / UNDECIDED by ISO 14253-1 guard
     bands of the test's expanded uncertainty. The cap of every sphere seen is reported (a
-    single view sees a cap, which makes PS less certain). See docs/acceptance.md.
+    single view sees a cap, which makes PS less certain). A rig with two cameras reads
+    both cameras' scans of each position ("second" in acceptance.json) and matches them
+    as 'reconstruct --second' does. See docs/acceptance.md.
 
     Example: telefringe accept acc/acceptance --rig rig.json --artefacts acc/artefacts.json
 
@@ -119,7 +150,7 @@ def accept_cmd(
     from telefringe.metrology._common import MetrologyError
     from telefringe.metrology.acceptance import evaluate_position, summarize
     from telefringe.reconstruction.cloud import TriangulationError
-    from telefringe.reconstruction.pipeline import reconstruct_scan
+    from telefringe.reconstruction.pipeline import reconstruct_scan, reconstruct_stereo_scans
 
     limits = parse_mpe(mpe)
     if not 0 <= edge_px <= 20:
@@ -130,26 +161,47 @@ def accept_cmd(
     scans = load_acceptance_set(folder)
     cert = load_artefacts(artefacts)
     rig_obj = load_rig(rig)
-    kinds = {a for _, a, _ in scans}
+    _check_cameras(scans, rig_obj, rig)
+    kinds = {e.artefact for e in scans}
     missing = {"sphere", "ball_bar", "plane"} - kinds
     if missing:
         info(f"[yellow]warning:[/yellow] no scan of the {', '.join(sorted(missing))}: "
              "its characteristics are not tested")
     positions = []
+    gamma_notes = {}
     with progress_bar(f"measuring {len(scans)} positions", len(scans)) as advance:
-        for name, kind, desc in scans:
-            scan = read_scan(Path(folder) / name)
+        for entry in scans:
+            name, kind, desc = entry.name, entry.artefact, entry.description
+            scan = read_scan(Path(folder) / entry.scan)
             try:
-                rec = reconstruct_scan(scan, rig_obj, with_height_map=False,
-                                       gamma_correction=gamma)
+                if entry.second is None:
+                    rec = reconstruct_scan(scan, rig_obj, with_height_map=False,
+                                           gamma_correction=gamma)
+                else:  # two cameras: as 'reconstruct SCAN --second SECOND'
+                    rec = reconstruct_stereo_scans(scan, read_scan(Path(folder) / entry.second),
+                                                   rig_obj, with_height_map=False,
+                                                   gamma_correction=gamma)
                 pos = evaluate_position(name, kind, rec.cloud.xyz, rec.cloud.mask, cert,
                                         erode_px=edge_px)
             except (DecodeError, PhaseInputError, TriangulationError, MetrologyError) as exc:
-                raise InputError(f"{Path(folder) / name}: {exc}") from None
+                raise InputError(f"{Path(folder) / entry.scan}: {exc}") from None
+            notes = _gamma_notes(rec)
+            if notes:
+                gamma_notes[name] = notes
             positions.append(pos)
             detail(f"{name} ({kind}{', ' + desc if desc else ''}): "
                    f"{rec.cloud.count} points")
             advance()
+    if gamma_notes:
+        first = next(iter(gamma_notes.values()))[0]
+        info(f"[yellow]warning:[/yellow] the projector nonlinearity learned from "
+             f"{len(gamma_notes)} of {len(scans)} scans is incomplete (e.g. "
+             f"{next(iter(gamma_notes))}: {first}); the values are measured with what "
+             "could be learned. A rig.json that carries the projector's model (from "
+             "'telefringe calibrate') does not learn it from small scans; -v lists all")
+        for n, notes in gamma_notes.items():
+            for note in notes:
+                detail(f"{n}: {note}")
     result = summarize(positions, cert, limits)
     if not state.quiet:
         console.print(_table(result))
@@ -159,8 +211,9 @@ def accept_cmd(
     if result.verdict:
         info(f"verdict: {result.verdict} (ISO 14253-1 guard bands of U, k = 2)")
     if json_out is not None:
-        write_json(json_out, result_to_json(result, rig=str(rig), folder=str(folder)),
-                   force=force)
+        doc = result_to_json(result, rig=str(rig), folder=str(folder))
+        doc["gamma_warnings"] = {n: list(v) for n, v in gamma_notes.items()}
+        write_json(json_out, doc, force=force)
         info(f"wrote {json_out}")
     if figure is not None:
         from telefringe.io.figures.acceptance import write_acceptance_figure

@@ -113,10 +113,12 @@ def _check_outputs(paths, force: bool) -> None:
 
 # --------------------------------------------------------------------------------------
 def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3.0,
-                         dark: bool = True, calibration=None):
+                         dark: bool = True, calibration=None, diameter: float | None = None):
     """Detect the circle grid in ``out``'s texture and measure the plate
-    (PlateMeasurement; with a ``calibration``, a RigCalibration, its uncertainty
-    including the calibration's). User problems raise InputError."""
+    (PlateMeasurement; with a ``calibration``, a RigCalibration, the detected centres
+    corrected through its camera for the circle-image bias (markers of ``diameter`` mm,
+    default half the pitch) and the uncertainty including the calibration's). User
+    problems raise InputError."""
     from telefringe.metrology import measure_plate
     from telefringe.targets.circle_grid import detect_circle_grid
 
@@ -129,7 +131,9 @@ def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3
     if not det:
         _fail(out, f"the {rows} x {cols} circle grid was not found: {det.reason}")
     try:
-        m = measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch)
+        m = measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch,
+                          camera=None if calibration is None else calibration.rig.camera,
+                          marker_diameter_mm=0.5 * pitch if diameter is None else diameter)
     except _metrology_errors() as exc:
         _fail(out, exc)
     from telefringe.metrology.uncertainty import plate_uncertainty
@@ -143,6 +147,9 @@ def plate_cmd(
     cols: int = typer.Option(11, "--cols", help="Marker columns of the plate."),
     pitch: float = typer.Option(3.0, "--pitch", help="Nominal marker pitch (mm)."),
     dark: bool = typer.Option(True, "--dark/--light", help="Dark markers on a light plate."),
+    diameter: float = typer.Option(None, "--diameter",
+                                   help="Marker diameter (mm; default half the pitch). "
+                                   "With --rig, corrects the detected centres."),
     rig: Path = typer.Option(None, "--rig", help=_RIG_HELP),
     json_path: Path = typer.Option(None, "--json", help=_JSON_HELP),
     force: bool = typer.Option(False, "--force", help="Replace existing output files."),
@@ -150,7 +157,9 @@ def plate_cmd(
     """Circle-marker plate: plane height above the reference (Z), flatness, and distances
     between neighbouring markers along X and Y (mean, abs error, std), as in the paper's
     Table 3; with --rig, the standard uncertainty u and expanded U (k = 2) of Z, tilt and
-    mean spacings including the calibration's.
+    mean spacings including the calibration's, and the detected marker centres corrected
+    through the rig's camera for the circle-image bias (a detected centre is the centre of
+    the circle's image, which lens distortion moves off the image of the circle's centre).
 
     Example: telefringe measure plate plate_3d --rig rig.json --json plate.json
     """
@@ -159,11 +168,22 @@ def plate_cmd(
     _check_outputs([json_path], force)
     cal = _load_calibration(rig)
     m = measure_plate_folder(out, rows=rows, cols=cols, pitch=pitch, dark=dark,
-                             calibration=cal)
+                             calibration=cal, diameter=diameter)
     sp = m.spacing
     info(f"plane: Z = {m.z.distance:.5f} mm (+- {_um(m.z.sigma)}), tilt "
          f"{m.z.angle_deg:.4f} deg, flatness {_um(m.plane.flatness)}, rms {_um(m.plane.rms)}")
     info(f"markers measured: {int(m.centres.valid.sum())} of {rows * cols}")
+    if m.centre_offsets_px is not None:
+        import numpy as np
+
+        off = np.asarray(m.centre_offsets_px)
+        off = off[np.all(np.isfinite(off), axis=1)]
+        rms = float(np.sqrt(np.mean(np.sum(off**2, axis=1)))) if off.size else float("nan")
+        info(f"marker centres corrected for the circle-image bias through the rig's camera "
+             f"(RMS {rms:.4f} px)")
+    else:
+        info("[yellow]note:[/yellow] marker centres as detected (give --rig rig.json to "
+             "correct them for the circle-image bias of the lens)")
     info(f"X: mean {sp.mean_x:.4f} mm, abs err {_um(sp.abs_err_x)}, std {_um(sp.std_x)} "
          f"({sp.n_x} distances)")
     info(f"Y: mean {sp.mean_y:.4f} mm, abs err {_um(sp.abs_err_y)}, std {_um(sp.std_y)} "
@@ -194,12 +214,31 @@ def sphere_cmd(
 
     _check_outputs([json_path], force)
     cal = _load_calibration(rig)
-    cloud, _ = _load(out)
+    from telefringe.io.points_npz import load_points
+
+    pf = load_points(out)
+    cloud = pf.cloud
+    spread = _sphere_spread_options(out, cal, pf)
     try:
-        sm = measure_sphere(cloud, min_height=min_height)
+        sm = measure_sphere(cloud, min_height=min_height, **spread)
     except _metrology_errors() as exc:
         _fail(out, exc)
     sm = _with_calibration(out, sphere_uncertainty, sm, cloud, cal)
+    if sm.spread is not None:
+        sp = sm.spread
+        info(f"fitted through the camera's point-spread model: variance "
+             f"{sp.variance_px2:.3f} px^2"
+             + (f" +- {sp.sigma_variance_px2:.3f} (estimated with the sphere)"
+                if sp.estimated else " (given)")
+             + f", points facing the camera within {sp.max_view_deg:g} deg")
+        if sp.estimated and sp.variance_px2 < -3.0 * sp.sigma_variance_px2:
+            info("[yellow]warning:[/yellow] the point-spread variance came out negative "
+                 "beyond 3 sigma: the model does not describe this sphere (not matte, not "
+                 "lit by the projector alone?); compare with a fit without --rig")
+    elif cal is not None:
+        info("[yellow]note:[/yellow] fitted without the point-spread model (it needs a "
+             "camera + projector rig, the same image size and the radiance in points.npz): "
+             "a blurring camera biases radius and centre by about s^2 / R")
     f, base = sm.sphere, sm.base
     if base is None:
         info("[yellow]warning:[/yellow] no base plane holds 20 % of the points: every point "
@@ -211,7 +250,35 @@ def sphere_cmd(
          f"{f.n_inliers} points")
     _report_uncertainty(sm.uncertainty, {"radius": "radius", "centre": "centre"})
     _save_json(json_path, sphere_summary(f, base, region=sm.region,
-                                         uncertainty=sm.uncertainty), force)
+                                         uncertainty=sm.uncertainty, spread=sm.spread), force)
+
+
+def _sphere_spread_options(out: Path, cal, pf) -> dict:
+    """measure_sphere's point-spread options from the rig, the folder's radiance and the
+    fringe periods of the scan its summary.json names (when still readable); {} where
+    the model cannot be used."""
+    if cal is None or pf.radiance is None:
+        return {}
+    rig = cal.rig
+    size = rig.camera.image_size
+    if (rig.projector is None or len(rig.cameras) != 1
+            or (size is not None and tuple(size) != (pf.cloud.shape[1], pf.cloud.shape[0]))):
+        return {}
+    periods = None
+    try:
+        import json
+
+        from telefringe.io.scan_json import load_scan_manifest
+        from telefringe.metrology.spheres import finest_fringe_periods
+
+        doc = json.loads((Path(out) / "summary.json").read_text())
+        scan_dir = Path(doc["scan"])
+        if not scan_dir.is_absolute():
+            scan_dir = Path(out) / scan_dir if not scan_dir.exists() else scan_dir
+        periods = finest_fringe_periods(load_scan_manifest(scan_dir))
+    except (OSError, ValueError, KeyError, TypeError):  # they refine the second order only
+        periods = None
+    return {"rig": rig, "image": pf.radiance, "fringe_periods": periods}
 
 
 def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,

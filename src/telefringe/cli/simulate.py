@@ -200,9 +200,11 @@ def acceptance(
     measuring volume (L0 = its diagonal; see docs/acceptance.md).
 
     Writes OUT/acceptance (a scan folder per position and acceptance.json naming each
-    one's artefact), OUT/artefacts.json (the artefacts' calibrated values, as a
-    certificate gives them) and OUT/truth (true rig, volume and scenes). Calibrate the
-    same rig with 'telefringe simulate calibration', then run 'telefringe accept'.
+    one's artefact; a two-camera rig (stereo) writes OUT/acceptance/NAME/camera and
+    OUT/acceptance/NAME/camera_2 per position), OUT/artefacts.json (the artefacts'
+    calibrated values, as a certificate gives them) and OUT/truth (true rig, volume and
+    scenes). Calibrate the same rig with 'telefringe simulate calibration', then run
+    'telefringe accept'.
 
     Example: telefringe simulate acceptance sim_acc --rig fast
     """
@@ -225,9 +227,8 @@ def acceptance(
     from telefringe.io.errors import InputError
 
     vrig = get_preset(rig.value)
-    if len(vrig.camera_names) > 1:
-        raise InputError(f"--rig {rig.value}: acceptance scans of a two-camera rig are not "
-                         "simulated (one camera and a projector: paper, fast, mixed, macro)")
+    cams = vrig.camera_names
+    two = len(cams) > 1
     try:
         vol = measuring_volume(vrig)
         art, positions = acceptance_positions(vrig, vol)
@@ -249,15 +250,24 @@ def acceptance(
             "measuring_volume_mm": {"x": [vol.x0, vol.x1], "y": [vol.y0, vol.y1],
                                     "z": [vol.z0, vol.z1]},
             "L0_mm": vol.L0, "artefacts": art})
-        with progress_bar(f"rendering {len(positions)} positions ({vrig.name} rig)",
-                          len(positions)) as advance:
-            for pos, result, truth in iter_acceptance_scans(vrig, positions, seed=seed,
-                                                            progress=_advance_by(advance)):
-                write_scan(acc / pos.name, result)
-                write_truth(truth_dir, pos.name, truth,
-                            extra={"artefact": pos.artefact, "description": pos.description})
-                detail(f"{pos.name}: {pos.artefact}, {pos.description}")
-        write_acceptance_set(acc, [(p.name, p.artefact, p.description) for p in positions])
+        for cam in cams:  # a two-camera rig: OUT/acceptance/NAME/camera, .../camera_2
+            label = f"rendering {len(positions)} positions ({vrig.name} rig" + (
+                f", {cam})" if two else ")")
+            with progress_bar(label, len(positions)) as advance:
+                for pos, result, truth in iter_acceptance_scans(
+                        vrig, positions, seed=seed, progress=_advance_by(advance),
+                        camera=cam):
+                    dest = acc / pos.name / cam if two else acc / pos.name
+                    dest.parent.mkdir(parents=True, exist_ok=True)
+                    write_scan(dest, result)
+                    write_truth(truth_dir, f"{pos.name}_{cam}" if two else pos.name, truth,
+                                extra={"artefact": pos.artefact,
+                                       "description": pos.description, "camera": cam})
+                    detail(f"{pos.name}: {pos.artefact}, {pos.description}"
+                           + (f" ({cam})" if two else ""))
+        write_acceptance_set(acc, [
+            (f"{p.name}/{cams[0]}" if two else p.name, p.artefact, p.description,
+             f"{p.name}/{cams[1]}" if two else None) for p in positions])
         write_artefacts(tmp / "artefacts.json", cert,
                         meta={"source": f"virtual rig {vrig.name!r}: exact artefacts; u is a "
                                         "typical certificate's"})

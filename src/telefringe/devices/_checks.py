@@ -1,10 +1,11 @@
-"""Validation shared by the device models: intrinsics fields and a frozen pose."""
+"""Validation shared by the device models: intrinsics fields, a frozen pose, world
+points and the image size."""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["check_intrinsics", "freeze_pose"]
+__all__ = ["check_intrinsics", "freeze_pose", "points_array", "image_size_of"]
 
 
 def _number(val) -> bool:
@@ -48,3 +49,20 @@ def freeze_pose(obj, t_names: str) -> None:
     t.setflags(write=False)
     object.__setattr__(obj, "R_dev_world", R)
     object.__setattr__(obj, "t_dev", t)
+
+
+def points_array(points_world, *, flat: bool = False) -> np.ndarray:
+    """``points_world`` as a float array of shape (..., 3) mm, or (n, 3) with ``flat``.
+    Raises ValueError naming the shape expected and the one given."""
+    X = np.asarray(points_world, dtype=float)
+    if flat and (X.ndim != 2 or X.shape[1] != 3):
+        raise ValueError(f"points_world must have shape (n, 3), got {X.shape}")
+    if X.shape[-1:] != (3,):
+        raise ValueError(f"points_world must have shape (..., 3), got {X.shape}")
+    return X
+
+
+def image_size_of(intrinsics) -> tuple[int, int] | None:
+    """(width, height) px of an intrinsics dataclass, or None where it does not give it."""
+    k = intrinsics
+    return (k.width, k.height) if k.width > 0 and k.height > 0 else None

@@ -22,7 +22,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from telefringe.devices._checks import check_intrinsics, freeze_pose
+from telefringe.devices._checks import (
+    check_intrinsics,
+    freeze_pose,
+    image_size_of,
+    points_array,
+)
 from telefringe.devices.base import ROTATION_NAMES
 from telefringe.geometry.distortion import (
     distort_normalized,
@@ -113,8 +118,7 @@ class PinholeDevice:
 
     @property
     def image_size(self) -> tuple[int, int] | None:
-        k = self.intrinsics
-        return (k.width, k.height) if k.width > 0 and k.height > 0 else None
+        return image_size_of(self.intrinsics)
 
     @property
     def rotvec(self) -> np.ndarray:
@@ -128,9 +132,7 @@ class PinholeDevice:
 
     # -- forward ----------------------------------------------------------------
     def _normalised(self, points_world):
-        X = np.asarray(points_world, dtype=float)
-        if X.shape[-1] != 3:
-            raise ValueError(f"points_world must have shape (..., 3), got {X.shape}")
+        X = points_array(points_world)
         Y = X @ self.R_dev_world.T + self.t_dev
         with np.errstate(divide="ignore", invalid="ignore"):
             z = np.where(Y[..., 2] > 0, Y[..., 2], np.nan)
@@ -197,9 +199,7 @@ class PinholeDevice:
             perturbation of ``R_dev_world`` at zero.
         J_points : (n, 2, 3) ndarray, d(u, v)/d(points_world), px/mm.
         """
-        X = np.asarray(points_world, dtype=float)
-        if X.ndim != 2 or X.shape[1] != 3:
-            raise ValueError(f"points_world must have shape (n, 3), got {X.shape}")
+        X = points_array(points_world, flat=True)
         k = self.intrinsics
         x, y, Y = self._normalised(X)
         dist = k.distortion

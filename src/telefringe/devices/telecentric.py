@@ -31,7 +31,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from telefringe.devices._checks import check_intrinsics, freeze_pose
+from telefringe.devices._checks import (
+    check_intrinsics,
+    freeze_pose,
+    image_size_of,
+    points_array,
+)
 from telefringe.devices.base import ROTATION_NAMES
 from telefringe.geometry.distortion import distort_sensor, undistort_sensor
 from telefringe.geometry.rays import Rays
@@ -143,9 +148,7 @@ class TelecentricDevice:
     # -- forward --------------------------------------------------------------
     def world_to_sensor(self, points_world):
         """World points (..., 3) mm -> undistorted sensor coordinates (xu, yu), each (...,) mm."""
-        X = np.asarray(points_world, dtype=float)
-        if X.shape[-1] != 3:
-            raise ValueError(f"points_world must have shape (..., 3), got {X.shape}")
+        X = points_array(points_world)
         m = self.intrinsics.m
         R = self.R_dev_world
         xu = m * (X @ R[0] + self.t_dev[0])
@@ -219,8 +222,7 @@ class TelecentricDevice:
     @property
     def image_size(self) -> tuple[int, int] | None:
         """(width, height) px, or None where the intrinsics do not give it."""
-        k = self.intrinsics
-        return (k.width, k.height) if k.width > 0 and k.height > 0 else None
+        return image_size_of(self.intrinsics)
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -269,9 +271,7 @@ class TelecentricDevice:
             left perturbation of ``R_dev_world`` at zero.
         J_points : (n, 2, 3) ndarray, d(u, v)/d(points_world), px/mm.
         """
-        X = np.asarray(points_world, dtype=float)
-        if X.ndim != 2 or X.shape[1] != 3:
-            raise ValueError(f"points_world must have shape (n, 3), got {X.shape}")
+        X = points_array(points_world, flat=True)
         k = self.intrinsics
         m, u0, v0, k1, s1, s2, du, dv = k.m, k.u0, k.v0, k.k1, k.s1, k.s2, k.du, k.dv
         R = self.R_dev_world

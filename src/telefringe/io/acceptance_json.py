@@ -5,7 +5,8 @@ certificate, format ``telefringe-artefacts`` v1) and ``result.json`` (what
 
 from __future__ import annotations
 
-from pathlib import Path
+from pathlib import Path, PurePosixPath
+from typing import NamedTuple
 
 import numpy as np
 
@@ -22,7 +23,7 @@ from telefringe.io.atomic import write_json_atomic
 from telefringe.io.errors import InputError
 from telefringe.metrology.acceptance import ARTEFACT_KINDS, Artefacts
 
-__all__ = ["SET_FORMAT", "ARTEFACTS_FORMAT", "RESULT_FORMAT", "load_acceptance_set",
+__all__ = ["SET_FORMAT", "ARTEFACTS_FORMAT", "RESULT_FORMAT", "SetEntry", "load_acceptance_set",
            "write_acceptance_set", "load_artefacts", "write_artefacts", "result_to_json"]
 
 SET_FORMAT = "telefringe-acceptance-set"
@@ -30,11 +31,32 @@ ARTEFACTS_FORMAT = "telefringe-artefacts"
 RESULT_FORMAT = "telefringe-acceptance-result"
 
 
-def load_acceptance_set(folder) -> list[tuple[str, str, str]]:
-    """Read ``folder/acceptance.json``: a list of ``(scan folder, artefact, description)``.
+class SetEntry(NamedTuple):
+    """One position of an acceptance set: its ``scan`` folder (relative to the set),
+    ``artefact``, ``description`` and, for a two-camera rig, the ``second`` camera's scan
+    folder of the same patterns (else None), as ``reconstruct --second`` takes it."""
 
-    Every scan is a sub-folder of ``folder`` holding a ``scan.json``; every artefact is
-    "sphere", "ball_bar" or "plane".
+    scan: str
+    artefact: str
+    description: str = ""
+    second: str | None = None
+
+    @property
+    def name(self) -> str:
+        """The position's name: the scan folder, or with a second camera the folder both
+        scans share (``sphere_00`` for ``sphere_00/camera`` + ``sphere_00/camera_2``)."""
+        if self.second is not None:
+            a, b = PurePosixPath(self.scan), PurePosixPath(self.second)
+            if a.parent == b.parent and str(a.parent) not in ("", "."):
+                return str(a.parent)
+        return self.scan
+
+
+def load_acceptance_set(folder) -> list[SetEntry]:
+    """Read ``folder/acceptance.json``: one :class:`SetEntry` per position.
+
+    Every scan (and ``second`` scan, where given) is a sub-folder of ``folder`` holding a
+    ``scan.json``; every artefact is "sphere", "ball_bar" or "plane".
     """
     folder, path = open_manifest(folder, "acceptance.json", "acceptance set")
     doc = read_json(path)
@@ -50,29 +72,45 @@ def load_acceptance_set(folder) -> list[tuple[str, str, str]]:
         if not isinstance(s, dict):
             probs.add(f"{what} must be an object {{\"scan\": ..., \"artefact\": ...}}")
             continue
-        check_fields(s, {"scan", "artefact", "description"}, f"{what}.", probs)
+        check_fields(s, {"scan", "artefact", "description", "second"}, f"{what}.", probs)
         if s.get("artefact") not in ARTEFACT_KINDS:
             probs.add(f"{what}.artefact must be one of {', '.join(ARTEFACT_KINDS)}, got "
                       f"{_r(s.get('artefact'))}")
-        ok = check_rel_path(folder, s.get("scan"), f"{what}.scan", probs, kind="folder")
-        if ok is None:
+        keys = ("scan", "second") if s.get("second") is not None else ("scan",)
+        bad = False
+        for key in keys:
+            ok = check_rel_path(folder, s.get(key), f"{what}.{key}", probs, kind="folder")
+            if ok is None:
+                bad = True
+                continue
+            if ok[1] in seen:
+                probs.add(f"{what}: {_r(s[key])} is listed twice")
+                bad = True
+                continue
+            seen.add(ok[1])
+            if not (folder / s[key] / "scan.json").is_file():
+                probs.add(f"{what}: {_r(s[key])} is not a scan folder (no scan.json)")
+        if bad:
             continue
-        if ok[1] in seen:
-            probs.add(f"{what}: {_r(s['scan'])} is listed twice")
-            continue
-        seen.add(ok[1])
-        if not (folder / s["scan"] / "scan.json").is_file():
-            probs.add(f"{what}: {_r(s['scan'])} is not a scan folder (no scan.json)")
-        out.append((str(s["scan"]), str(s.get("artefact")), str(s.get("description", ""))))
+        out.append(SetEntry(str(s["scan"]), str(s.get("artefact")),
+                            str(s.get("description", "")),
+                            None if s.get("second") is None else str(s["second"])))
     probs.raise_if_any()
     return out
 
 
 def write_acceptance_set(folder, scans) -> None:
     """Write ``folder/acceptance.json``; ``scans``: ``(scan folder, artefact,
-    description)`` per scan."""
-    doc = {"format": SET_FORMAT, "version": 1,
-           "scans": [{"scan": n, "artefact": a, "description": d} for n, a, d in scans]}
+    description)`` or ``(scan folder, artefact, description, second camera's scan folder
+    or None)`` per position."""
+    rows = []
+    for e in scans:
+        e = SetEntry(*e)
+        row = {"scan": e.scan, "artefact": e.artefact, "description": e.description}
+        if e.second is not None:
+            row["second"] = e.second
+        rows.append(row)
+    doc = {"format": SET_FORMAT, "version": 1, "scans": rows}
     write_json_atomic(Path(folder) / "acceptance.json", doc, force=True)
 
 

@@ -98,9 +98,11 @@ def plate_summary(m) -> dict:
     }, m)
 
 
-def sphere_summary(f, base=None, *, region: str | None = None, uncertainty=None) -> dict:
+def sphere_summary(f, base=None, *, region: str | None = None, uncertainty=None,
+                   spread=None) -> dict:
     """A :class:`telefringe.metrology.SphereFit` (and its base plane, which points were
-    fitted: ``SphereMeasurement.region``, and ``SphereMeasurement.uncertainty``)."""
+    fitted: ``SphereMeasurement.region``, ``SphereMeasurement.uncertainty`` and the
+    point-spread model it was fitted through, ``SphereMeasurement.spread``)."""
     out = {"centre_mm": to_jsonable(f.centre), "radius_mm": _f(f.radius),
            "diameter_mm": _f(f.diameter), "sigma_centre_mm": to_jsonable(f.sigma_centre),
            "sigma_radius_mm": _f(f.sigma_radius), "rms_mm": _f(f.rms),
@@ -112,6 +114,10 @@ def sphere_summary(f, base=None, *, region: str | None = None, uncertainty=None)
         out["fitted_points"] = region
     out["uncertainty"] = uncertainty_summary(uncertainty)
     out["uncertainty_includes_calibration"] = uncertainty is not None
+    out["point_spread"] = None if spread is None else {
+        "variance_px2": _f(spread.variance_px2),
+        "sigma_variance_px2": _f(spread.sigma_variance_px2),
+        "estimated": bool(spread.estimated), "max_view_deg": _f(spread.max_view_deg)}
     return out
 
 

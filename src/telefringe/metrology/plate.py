@@ -35,7 +35,7 @@ class MarkerCentres:
 
 def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None = None,
                       outer_px: float | None = None, degree: int = 2, min_points: int = 30,
-                      sigma_px=0.0) -> MarkerCentres:
+                      sigma_px=0.0, offsets_px=None) -> MarkerCentres:
     """3D position of marker centres from their camera-image centres.
 
     Around each marker, X, Y and Z of the cloud are smooth functions of the camera pixel
@@ -60,6 +60,10 @@ def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None =
         Standard uncertainty of the image centres (px, per axis). The uncertainty of the
         result includes it (through the local slopes of X, Y, Z with u and v) besides the
         noise of the cloud; with the default 0 only the cloud's noise counts.
+    offsets_px : (n, 2) array_like, px, optional
+        Read each marker at ``centres_px - offsets_px`` (the annulus stays about
+        ``centres_px``): the bias of a detected centre, the image of the circle's centre
+        being ``centres_px - offsets_px`` (see :func:`measure_plate`).
 
     Returns
     -------
@@ -71,6 +75,10 @@ def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None =
     if degree not in (1, 2, 3):
         raise MetrologyError(f"degree must be 1, 2 or 3, got {degree!r}")
     ok = np.all(np.isfinite(c), axis=1)
+    off = (np.zeros(c.shape) if offsets_px is None
+           else np.array(np.broadcast_to(np.asarray(offsets_px, dtype=np.float64), c.shape)))
+    if not np.all(np.isfinite(off[ok])):
+        raise MetrologyError("offsets_px must be finite where a centre is given")
     if inner_px is None or outer_px is None:
         cf = c[ok]
         if cf.shape[0] < 2:
@@ -141,8 +149,11 @@ def marker_centres_3d(cloud: PointCloud, centres_px, *, inner_px: float | None =
         res = (Y[keep] - A[keep] @ coef) * sw[keep, None]
         dof = Ak.shape[0] - Ak.shape[1]
         s2 = np.sum(res * res, axis=0) / dof  # per coordinate
-        cov00 = np.linalg.inv(Ak.T @ Ak)[0, 0]
-        out[k] = coef[0]
+        # evaluated at the circle centre's image (the detected centre minus its offset)
+        a0 = _poly_design(np.array([-off[k, 0] / outer_px]), np.array([-off[k, 1] / outer_px]),
+                          degree)[0]
+        cov00 = float(a0 @ np.linalg.solve(Ak.T @ Ak, a0))
+        out[k] = a0 @ coef
         # the centre's own error moves the point along the surface: d xyz / d(u, v)
         slope2 = (coef[1] ** 2 + coef[2] ** 2) / outer_px**2
         out_s[k] = np.sqrt(s2 * cov00 + s_px[k] ** 2 * slope2)
@@ -221,6 +232,10 @@ class PlateMeasurement:
     uncertainty : dict of str -> Uncertainty, or None: ``"z"``, ``"tilt_deg"``,
         ``"spacing_x"``, ``"spacing_y"`` with the noise and calibration parts (set by
         :func:`telefringe.metrology.uncertainty.plate_uncertainty`; None until then).
+    centre_offsets_px : (rows * cols, 2) ndarray, px, or None: the predicted bias of each
+        detected centre (its circle's image centre minus the image of the circle's
+        centre), subtracted before the cloud was read; None when not corrected (no
+        camera given to :func:`measure_plate`).
     """
 
     plane: PlaneFit
@@ -228,12 +243,30 @@ class PlateMeasurement:
     centres: MarkerCentres
     spacing: GridSpacing
     uncertainty: dict | None = None
+    centre_offsets_px: np.ndarray | None = None
+
+    def __post_init__(self):
+        _freeze(self, "centre_offsets_px")
 
 
 def measure_plate(cloud: PointCloud, centres_px, *, rows: int, cols: int, pitch_mm: float,
                   reference: Plane | None = None, inner_px: float | None = None,
-                  outer_px: float | None = None, seed: int = 0) -> PlateMeasurement:
+                  outer_px: float | None = None, seed: int = 0, camera=None,
+                  marker_diameter_mm: float | None = None) -> PlateMeasurement:
     """Measure a circle-marker plate: its plane, its height and its marker spacing.
+
+    A detected marker centre is the centre of the circle's image, not the image of the
+    circle's centre (lens distortion and perspective bend the circle's image; under
+    radial distortion like a magnification change of 3 k1 rho^2, rho the marker's radius
+    on the sensor). Given the ``camera`` that made the cloud and the markers' diameter,
+    each detected centre is corrected by its predicted bias: the image centre of a circle
+    of that diameter on the fitted plane, about the marker's 3D centre, through the
+    camera's full model, minus the image of that centre
+    (:func:`telefringe.calibration.centres.circle_image_centres`, as the calibration
+    corrects its own detected centres), and the cloud is read at the corrected pixel.
+    The bias is evaluated at the centre read at the detected pixel, which is off the
+    corrected one by the bias itself (about 0.01 px): the bias changes over it by a part
+    in 1e4 of its size (tests/test_plate_centre_bias.py bounds it).
 
     Parameters
     ----------
@@ -244,12 +277,67 @@ def measure_plate(cloud: PointCloud, centres_px, *, rows: int, cols: int, pitch_
     reference : Plane, default Z = 0 (the calibration's reference pose).
     inner_px, outer_px : annulus of :func:`marker_centres_3d`.
     seed : seeds the robust plane fit.
+    camera : Device, optional, the camera that made the cloud (e.g. ``rig.camera``; its
+        pixels are the cloud's). Without it the detected centres are used as they are
+        (``centre_offsets_px`` is None): a bias of up to a few 1e-5 of the spacing on a
+        distorting lens.
+    marker_diameter_mm : float, the markers' diameter (needed with ``camera``).
+
+    Returns
+    -------
+    PlateMeasurement
     """
     c = np.asarray(centres_px, dtype=np.float64)
     if c.shape != (int(rows) * int(cols), 2):
         raise MetrologyError(f"centres_px must have shape ({rows * cols}, 2), got {c.shape}")
+    if camera is not None:
+        if marker_diameter_mm is None or not (np.isfinite(marker_diameter_mm)
+                                              and marker_diameter_mm > 0):
+            raise MetrologyError("give the markers' diameter (marker_diameter_mm > 0) to "
+                                 f"correct their detected centres, got {marker_diameter_mm!r}")
+        size = getattr(camera, "image_size", None)
+        if size is not None and tuple(size) != (cloud.shape[1], cloud.shape[0]):
+            raise MetrologyError(f"the camera is {size[0]} x {size[1]} px but the cloud is "
+                                 f"{cloud.shape[1]} x {cloud.shape[0]}: give the camera that "
+                                 "made it")
     plane = fit_plane(cloud, robust=True, seed=seed)
     ref = Plane.horizontal(0.0) if reference is None else reference
     centres = marker_centres_3d(cloud, c, inner_px=inner_px, outer_px=outer_px)
+    offsets = None
+    if camera is not None:
+        offsets = centre_offsets(camera, centres.xyz, plane.normal, 0.5 * marker_diameter_mm)
+        centres = marker_centres_3d(cloud, c, inner_px=inner_px, outer_px=outer_px,
+                                    offsets_px=np.nan_to_num(offsets))
     spacing = grid_spacing(centres.xyz, rows=rows, cols=cols, pitch_mm=pitch_mm)
-    return PlateMeasurement(plane, plane_distance(plane, ref), centres, spacing)
+    return PlateMeasurement(plane, plane_distance(plane, ref), centres, spacing,
+                            centre_offsets_px=offsets)
+
+
+def centre_offsets(camera, centres_xyz, normal, radius_mm: float) -> np.ndarray:
+    """Predicted bias of detected circle centres: the image centre of each circle minus
+    the image of its centre, through the camera's full model.
+
+    Parameters
+    ----------
+    camera : Device.
+    centres_xyz : (n, 3) array_like, mm, the circles' centres (world; NaN rows give NaN).
+    normal : (3,) or (n, 3) array_like, the plane normal(s).
+    radius_mm : float, the circles' radius.
+
+    Returns
+    -------
+    (n, 2) ndarray, px.
+    """
+    from telefringe.calibration.centres import circle_image_centres
+
+    X = np.asarray(centres_xyz, dtype=np.float64).reshape(-1, 3)
+    out = np.full((X.shape[0], 2), np.nan)
+    ok = np.all(np.isfinite(X), axis=1)
+    if ok.any():
+        Xo = X[ok]
+        nrm = np.asarray(normal, dtype=np.float64)
+        if nrm.ndim == 2:
+            nrm = nrm[ok]
+        out[ok] = (circle_image_centres(camera, Xo, nrm, float(radius_mm))
+                   - np.stack(camera.project(Xo), axis=1))
+    return out

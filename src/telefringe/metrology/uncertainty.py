@@ -38,6 +38,7 @@ from telefringe.calibration.uncertainty import (
     covariance_factor,
     point_jacobian,
     propagate_fd,
+    stereo_calibration,
     sum_point_jacobian,
 )
 from telefringe.metrology._common import MetrologyError, _tangent_basis
@@ -50,6 +51,7 @@ __all__ = [
     "sphere_uncertainty",
     "bga_uncertainty",
     "weight_v_of",
+    "for_stereo",
 ]
 
 #: Coverage factor of the expanded uncertainty U = k u (about 95 % for a Gaussian).
@@ -102,6 +104,31 @@ def weight_v_of(cloud) -> float:
     combined both axes (it kept a u/v ``residual``; equal weights per projector pixel,
     the triangulator's choice without the decoder's sigmas), else 0 (u_p alone)."""
     return 0.0 if getattr(cloud, "residual", None) is None else 1.0
+
+
+def for_stereo(calibration, coords_2, *, use_v_p: bool = True):
+    """The calibration of a two-camera rig as the ``calibration`` argument of the
+    functions here for a cloud matched between its cameras (``reconstruct --second``,
+    :func:`~telefringe.reconstruction.pipeline.reconstruct_stereo_scans`): its points'
+    calibration part then comes from both cameras' parameters through the two-ray
+    triangulation (:func:`~telefringe.calibration.uncertainty.stereo_calibration`).
+
+    Parameters
+    ----------
+    calibration : RigCalibration of a rig with two cameras.
+    coords_2 : the second camera's decoded coordinates (``Reconstruction.coords_2``:
+        ``u_p``, ``v_p``, ``sigma_u_p``, ``sigma_v_p``, (rows, cols) projector px).
+    use_v_p : whether the matching combined both axes (its default), as passed to it.
+
+    Returns
+    -------
+    StereoCalibration
+    """
+    axes = ["u"] + (["v"] if use_v_p and getattr(coords_2, "v_p", None) is not None else [])
+    maps = [getattr(coords_2, f"{a}_p") for a in axes]
+    sig = [getattr(coords_2, f"sigma_{a}_p", None) for a in axes]
+    return stereo_calibration(calibration, maps,
+                              sigmas_2=None if any(x is None for x in sig) else sig)
 
 
 def _factor(calibration):
@@ -303,7 +330,9 @@ def sphere_uncertainty(measurement, cloud, calibration, *, weight_v=None):
     ``"centre"`` ((3,) mm, world frame).
 
     The geometric fit is linearised at its solution over the points it used
-    (``measurement.fitted``).
+    (``measurement.fitted``); a fit through the camera's point-spread model
+    (``measurement.spread``) with its own design, the spread's variance a parameter when
+    it was estimated with the sphere.
     """
     wv = weight_v_of(cloud) if weight_v is None else weight_v
     L = _factor(calibration)
@@ -312,14 +341,28 @@ def sphere_uncertainty(measurement, cloud, calibration, *, weight_v=None):
     if fitted is None:
         raise MetrologyError("the sphere measurement does not record its points (measure "
                              "it again with this version)")
-    pts = cloud.xyz[np.asarray(fitted, dtype=bool) & cloud.mask]
+    sel = np.asarray(fitted, dtype=bool) & cloud.mask
+    pts = cloud.xyz[sel]
     f = m.sphere
-    d = pts - f.centre
-    r = np.linalg.norm(d, axis=1)
-    uvec = d / r[:, None]
-    a = np.column_stack([-uvec, -np.ones(pts.shape[0])])  # d residual / d (c, R)
+    spread = getattr(m, "spread", None)
+    if spread is None:
+        d = pts - f.centre
+        r = np.linalg.norm(d, axis=1)
+        uvec = d / r[:, None]
+        a = np.column_stack([-uvec, -np.ones(pts.shape[0])])  # d residual / d (c, R)
+    else:
+        # the fit through the point-spread model: its residuals' design, with the spread's
+        # variance a parameter when it was estimated (the points move the estimate too)
+        from telefringe.metrology.spheres import _spread_design
+
+        T = np.asarray(m.spread_terms)[sel]
+        dirs = cloud.directions
+        dv = np.broadcast_to(dirs, pts.shape) if dirs.ndim == 1 else dirs[sel]
+        x = np.array([*f.centre, f.radius, spread.variance_px2])
+        _, J, uvec = _spread_design(pts, dv, T[:, 0], T[:, 1], x, spread.estimated)
+        a = J
     Ninv = np.linalg.inv(a.T @ a)
-    G = -(a @ Ninv.T)[:, :, None] * uvec[:, None, :]  # (n, 4, 3)
+    G = (-(a @ Ninv.T)[:, :, None] * uvec[:, None, :])[:, :4]  # (n, 4, 3): (c, R)
     J = sum_point_jacobian(calibration, pts, G, weight_v=wv)
     u = np.sqrt(np.sum((J @ L) ** 2, axis=1))
     sc = np.sqrt(np.diag(f.covariance))

@@ -10,6 +10,7 @@ import numpy as np
 from telefringe.geometry.rays import Rays
 
 __all__ = [
+    "projector_axes",
     "TriangulationError",
     "PointCloud",
     "FLAG_NO_PHASE",
@@ -287,3 +288,33 @@ def pixel_rows(u_c, v_c, u_p, v_p=None, sigma_u_p=None, sigma_v_p=None):
         return x
 
     return u_c, v_c, PixelCoords(row(u_p), row(v_p), None, row(sigma_u_p), row(sigma_v_p))
+
+
+def projector_axes(coords, shape):
+    """The decoded coordinates a triangulator reads, checked against its camera ``shape``
+    (rows, cols): ``(a, b, sigma_a, sigma_b, mask, swap)`` with ``a`` the primary axis
+    (``u_p``; ``v_p`` when there are v fringes only, then ``swap`` is True and ``b`` None),
+    ``b`` the other axis or None, their sigmas (or None) and ``coords.mask`` (or None), as
+    given. Raises TriangulationError when there is no axis or a shape differs."""
+    up = getattr(coords, "u_p", None)
+    vp = getattr(coords, "v_p", None)
+    su = getattr(coords, "sigma_u_p", None)
+    sv = getattr(coords, "sigma_v_p", None)
+    # v fringes only: the same solve with the projector's axes swapped
+    swap = up is None
+    if swap:
+        if vp is None:
+            raise TriangulationError("coords has neither u_p nor v_p")
+        up, vp, su, sv = vp, None, sv, None
+    up = np.asarray(up)
+    shape = tuple(shape)
+    if up.shape != shape:
+        raise TriangulationError(
+            f"the projector coordinates have shape {up.shape} but the triangulator was "
+            f"built for {shape}")
+    mask = getattr(coords, "mask", None)
+    for name, arr in (("mask", mask), ("v_p", vp), ("sigma_u_p", su), ("sigma_v_p", sv)):
+        if arr is not None and np.shape(arr) != shape:
+            raise TriangulationError(
+                f"{name} has shape {np.shape(arr)}, expected {shape} like u_p")
+    return up, vp, su, sv, mask, swap

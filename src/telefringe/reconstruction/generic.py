@@ -64,6 +64,7 @@ from telefringe.reconstruction.cloud import (
     TriangulationError,
     _readonly,
     pixel_rows,
+    projector_axes,
 )
 
 __all__ = ["GenericTriangulator", "triangulate", "triangulate_pixels", "safe_backproject",
@@ -373,25 +374,7 @@ class _Obs:
 
 
 def _observations(coords, shape) -> _Obs:
-    up = getattr(coords, "u_p", None)
-    vp = getattr(coords, "v_p", None)
-    su = getattr(coords, "sigma_u_p", None)
-    sv = getattr(coords, "sigma_v_p", None)
-    swap = up is None
-    if swap:
-        if vp is None:
-            raise TriangulationError("coords has neither u_p nor v_p")
-        up, vp, su, sv = vp, None, sv, None
-    up = np.asarray(up)
-    if up.shape != tuple(shape):
-        raise TriangulationError(
-            f"the projector coordinates have shape {up.shape} but the triangulator was "
-            f"built for {tuple(shape)}")
-    mask = getattr(coords, "mask", None)
-    for name, arr in (("mask", mask), ("v_p", vp), ("sigma_u_p", su), ("sigma_v_p", sv)):
-        if arr is not None and np.shape(arr) != tuple(shape):
-            raise TriangulationError(
-                f"{name} has shape {np.shape(arr)}, expected {tuple(shape)} like u_p")
+    up, vp, su, sv, mask, swap = projector_axes(coords, shape)
     n = int(np.prod(shape))
 
     def flat(x):

@@ -70,6 +70,7 @@ from telefringe.reconstruction.cloud import (
     TriangulationError,
     _readonly,
     pixel_rows,
+    projector_axes,
 )
 
 __all__ = ["Triangulator", "triangulate", "triangulate_pixels", "TRIANGULATOR_CACHE_BYTES"]
@@ -182,31 +183,12 @@ class Triangulator:
                     max_sigma_z: float | None = None, use_v_p: bool = True,
                     check_bounds: bool = True) -> PointCloud:
         """Triangulate decoded projector coordinates; see :func:`triangulate`."""
-        up = getattr(coords, "u_p", None)
-        vp = getattr(coords, "v_p", None)
-        su = getattr(coords, "sigma_u_p", None)
-        sv = getattr(coords, "sigma_v_p", None)
         # v fringes only: the same solve with the projector's axes swapped (the distortion
         # model is symmetric under x <-> y with s1 <-> s2)
-        swap = up is None
-        if swap:
-            if vp is None:
-                raise TriangulationError("coords has neither u_p nor v_p")
-            up, vp, su, sv = vp, None, sv, None
-        up = np.asarray(up)
-        if up.shape != self.shape:
-            raise TriangulationError(
-                f"the projector coordinates have shape {up.shape} but the triangulator was "
-                f"built for {self.shape}")
-        mask_in = getattr(coords, "mask", None)
+        up, vp, su, sv, mask_in, swap = projector_axes(coords, self.shape)
         mask_in = (np.ones(self.shape, dtype=bool) if mask_in is None
                    else np.asarray(mask_in, dtype=bool))
         has_v = vp is not None
-        for name, arr in (("mask", mask_in), ("v_p", vp), ("sigma_u_p", su),
-                          ("sigma_v_p", sv)):
-            if arr is not None and np.shape(arr) != self.shape:
-                raise TriangulationError(
-                    f"{name} has shape {np.shape(arr)}, expected {self.shape} like u_p")
         combine = has_v and use_v_p
         coef = self.coef[::-1] if swap else self.coef
         Bu, Bv = float(coef[0, 2]), float(coef[1, 2])

@@ -2,7 +2,8 @@
 artefacts sized from it, and their positions.
 
 The rig's measuring volume is the largest box (axis-parallel in the world frame) whose
-every point is seen by the camera and lit by the projector, x-y over the fields of view
+every point is seen by the camera (by both cameras of a stereo rig) and lit by the
+projector, x-y over the fields of view
 and z over the depth of field (``VirtualRig.depth_of_field_mm``, centred on z = 0);
 L0 is its space diagonal. The artefacts follow the guideline's proportions as they are
 commonly summarised (docs/acceptance.md says which were checked): a test sphere of
@@ -108,14 +109,15 @@ def measuring_volume(vrig: VirtualRig, *, margin: float = 0.03, n: int = 121
     uu = np.array([0, w - 1, w - 1, 0, (w - 1) / 2, (w - 1) / 2, 0, w - 1], dtype=float)
     vv = np.array([0, 0, h - 1, h - 1, 0, h - 1, (h - 1) / 2, (h - 1) / 2], dtype=float)
     o, d = cam.backproject(uu, vv)
-    d = np.broadcast_to(d, o.shape)  # (3,) for a telecentric camera, per pixel otherwise
+    # a telecentric camera shares its direction, a pinhole camera its origin
+    o, d = np.broadcast_arrays(o, d)
     foot = o - (o[:, 2] / d[:, 2])[:, None] * d  # on z = 0
     lo, hi = foot[:, :2].min(axis=0), foot[:, :2].max(axis=0)
     xs = np.linspace(lo[0], hi[0], n)
     ys = np.linspace(lo[1], hi[1], n)
     X, Y = np.meshgrid(xs, ys)
     ok = np.ones(X.shape, dtype=bool)
-    for dev in (cam, proj):
+    for dev in (*vrig.rig.cameras.values(), proj):  # every camera (stereo: both)
         dw, dh = dev.image_size
         for z in zs:
             u, v = dev.project(np.stack([X, Y, np.full_like(X, z)], axis=-1))
@@ -254,17 +256,24 @@ def _seed(seed: int, k: int) -> int:
 
 
 def iter_acceptance_scans(vrig: VirtualRig, positions, *, seed: int = 0, groups=None,
-                          progress: Callable | None = None) -> Iterator[tuple]:
+                          progress: Callable | None = None, camera: str | None = None
+                          ) -> Iterator[tuple]:
     """Render each position (bounded memory): yields ``(position, scan, truth)``.
 
-    ``progress(done, total)`` counts scans.
+    ``progress(done, total)`` counts scans. ``camera``: which camera of a two-camera rig
+    sees the scans (``vrig.camera_names``; its noise is seeded apart from the other's);
+    default the first.
     """
     from telefringe.simulate.render import default_groups, render_scan
 
+    names = vrig.camera_names
+    ci = 0 if camera is None else names.index(camera)
+    view = vrig.for_camera(names[ci]) if len(names) > 1 else vrig
     if groups is None:
-        groups = default_groups(vrig)
+        groups = default_groups(view)
     for k, pos in enumerate(positions):
-        scan, truth = render_scan(vrig, pos.scene, groups, seed=_seed(seed, k))
+        scan, truth = render_scan(view, pos.scene, groups,
+                                  seed=_seed(seed, k) + 1000003 * ci)
         if progress is not None:
             progress(k + 1, len(positions))
         yield pos, scan, truth

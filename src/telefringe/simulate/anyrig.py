@@ -202,6 +202,7 @@ class AnyrigResult:
         predicted per-pixel sigma (along the plane normal), on pixels valid in every
         repeat; n_mc : int.
     steps : list of SceneFigures (step heights); sphere : SceneFigures (radius) or None.
+    sphere_centre : list of SceneFigures, the sphere centre's x, y, z (world, mm).
     """
 
     rig: str
@@ -213,6 +214,7 @@ class AnyrigResult:
     steps: list = field(default_factory=list)
     sphere: SceneFigures | None = None
     mirror: str = ""
+    sphere_centre: list = field(default_factory=list)
 
 
 def _plane_errors(cloud, plane: TiltedPlane):
@@ -224,6 +226,22 @@ def _plane_errors(cloud, plane: TiltedPlane):
     d = cloud.directions
     dn = np.abs(d @ n) if d.ndim == 1 else np.abs(d[m] @ n)
     return e, cloud.sigma_line[m] * dn, m
+
+
+def _sphere_options(rig: Rig, scans: dict):
+    """measure_sphere's point-spread options for a rig (a function of the rig measuring):
+    a camera + projector rig fits through the model with the first camera's brightness
+    (the scan's mean level) and the scan's finest fringe periods; a two-camera rig (no
+    model there yet) fits the points as they are."""
+    from telefringe.fringes.images import scan_radiance
+    from telefringe.metrology.spheres import finest_fringe_periods
+
+    if len(rig.cameras) != 1 or rig.projector is None:
+        return lambda r: {}
+    scan = scans[rig.camera_names[0]]
+    image = scan_radiance(scan)
+    periods = finest_fringe_periods(scan.manifest)
+    return lambda r: {"rig": r, "image": image, "fringe_periods": periods}
 
 
 def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int = 8,
@@ -298,18 +316,27 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
                 float(np.std(cal[:, j], ddof=1)) if cal.shape[1] > j else float("nan"), sz))
         progress("steps", 1, 1)
     sphere_fig = None
+    centre_figs: list = []
     if "sphere" in scenes:
         sph = default_sphere()
         scans, _ = scan_scene(vrig, sph, seed=seed + 401)
         coords = _decode_all(scans, calib, noise)
         cloud = _triangulate(calib.rig, coords)
-        fit = measure_sphere(cloud).sphere
-        cal = [measure_sphere(_triangulate(r, coords)).sphere.radius for r in rigs]
+        kw = _sphere_options(calib.rig, scans)
+        fit = measure_sphere(cloud, **kw(calib.rig)).sphere
+        cal = np.array([[*f.centre, f.radius] for f in
+                        (measure_sphere(_triangulate(r, coords), **kw(r)).sphere
+                         for r in rigs)])
         sz = float(np.nanmedian(cloud.sigma_line[cloud.mask]))
         sphere_fig = SceneFigures("sphere radius", float(fit.radius), float(sph.radius),
                                   float(np.sqrt(fit.covariance[3, 3])),
-                                  float(np.std(cal, ddof=1)), sz)
+                                  float(np.std(cal[:, 3], ddof=1)), sz)
+        centre_figs = [SceneFigures(f"sphere centre {ax}", float(fit.centre[k]),
+                                    float(sph.center[k]),
+                                    float(np.sqrt(fit.covariance[k, k])),
+                                    float(np.std(cal[:, k], ddof=1)), sz)
+                       for k, ax in enumerate("xyz")]
         progress("sphere", 1, 1)
     return AnyrigResult(rig=vrig.name, n_poses=n_poses, rms=rms, plane_bias=plane_fig,
                         sigma_ratio=float(emp / pred), n_mc=int(n_mc), steps=steps_figs,
-                        sphere=sphere_fig, mirror=calib.mirror)
+                        sphere=sphere_fig, mirror=calib.mirror, sphere_centre=centre_figs)

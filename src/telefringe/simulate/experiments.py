@@ -248,7 +248,8 @@ def run_plate(vrig: VirtualRig, rig: Rig, position: float, *, seed: int = 0) -> 
     if not det:
         raise RuntimeError(f"plate at Z = {position} mm: grid not found ({det.reason})")
     m = measure_plate(rec.cloud, det.centers, rows=target.rows, cols=target.cols,
-                      pitch_mm=target.pitch_mm, seed=seed)
+                      pitch_mm=target.pitch_mm, seed=seed, camera=rig.camera,
+                      marker_diameter_mm=target.diameter_mm)
     sp = m.spacing
     dx = np.asarray(sp.dist_x, dtype=float).ravel()
     dy = np.asarray(sp.dist_y, dtype=float).ravel()

@@ -36,11 +36,12 @@ from telefringe.acquisition.base import (
     DeviceListing,
     Frame,
     FrameStatus,
-    NotSupported,
     Trigger,
 )
 from telefringe.acquisition.drivers import _arvlib as _a
 from telefringe.acquisition.drivers._ids import id_gap
+from telefringe.acquisition.drivers._settings import check_configure, full_roi
+from telefringe.acquisition.drivers._trigger import SoftwareTriggerBook
 
 __all__ = ["AravisCamera", "open_camera", "list_cameras", "id_gap"]
 
@@ -101,7 +102,7 @@ def _str(b) -> str:
     return b.decode("utf-8", "replace") if b else ""
 
 
-class AravisCamera:
+class AravisCamera(SoftwareTriggerBook):
     """A GigE Vision / USB3 Vision camera through Aravis (the :class:`Camera` protocol).
 
     Parameters
@@ -155,10 +156,14 @@ class AravisCamera:
         return tuple(f for f in names if f in PIXEL_FORMAT_MAX)
 
     def _reset_counts(self) -> None:
-        self._owed = 0              # software triggers fired and not yet answered
-        self._last_id: int | None = None
+        super()._reset_counts()
         self._t_fire_ns = 0         # wall clock (ns) of the last trigger
-        self._desync = False
+
+    def _acquiring(self) -> bool:
+        return self._started
+
+    def _restart(self) -> None:
+        self._resync()
 
     def _require_open(self) -> None:
         if self._cam is None:
@@ -178,22 +183,15 @@ class AravisCamera:
         SOFTWARE, HARDWARE (on ``trigger_line``, default ``"Line0"``) or FREE_RUN.
         """
         self._require_open()
-        if self._started:
-            raise DeviceError("configure the camera before start(), not while acquiring")
-        if pixel_format not in PIXEL_FORMAT_MAX:
-            raise NotSupported(f"pixel format {pixel_format!r} is not supported; use one of "
-                               f"{', '.join(PIXEL_FORMAT_MAX)}")
-        if self.info.pixel_formats and pixel_format not in self.info.pixel_formats:
-            raise NotSupported(f"camera {self.info.model} offers "
-                               f"{', '.join(self.info.pixel_formats)}, not {pixel_format}")
+        check_configure(self.info, pixel_format, acquiring=self._started,
+                        unknown_formats_ok=True)
         if not (np.isfinite(exposure_s) and exposure_s > 0):
             raise ValueError(f"exposure_s must be a positive number of seconds, got "
                              f"{exposure_s!r}")
         cam = self._cam
         _a.call("arv_camera_set_acquisition_mode", cam, _ACQUISITION_CONTINUOUS)
         _a.call("arv_camera_set_pixel_format_from_string", cam, pixel_format.encode())
-        x, y, w, h = roi if roi is not None else (0, 0, self.info.width, self.info.height)
-        _a.call("arv_camera_set_region", cam, int(x), int(y), int(w), int(h))
+        _a.call("arv_camera_set_region", cam, *full_roi(roi, self.info))
         for fn in ("arv_camera_set_exposure_time_auto", "arv_camera_set_gain_auto"):
             try:
                 _a.call(fn, cam, _AUTO_OFF)
@@ -271,12 +269,8 @@ class AravisCamera:
 
     def fire(self) -> None:
         """Send a software trigger (no-op unless configured with Trigger.SOFTWARE)."""
-        if not self._started:
-            raise DeviceError("start() the camera before fire()")
-        if self.settings.trigger is not Trigger.SOFTWARE:
+        if not self._fire_ready():
             return
-        if self._desync:
-            self._resync()
         self._t_fire_ns = time.time_ns()    # Aravis stamps arrivals with the wall clock
         _a.call("arv_camera_software_trigger", self._cam)
         self._owed += 1
@@ -384,10 +378,7 @@ class AravisCamera:
                 break
             _a.lib.arv_stream_push_buffer(self._stream, buf)
             n += 1
-        if self._desync or self._owed:
-            self._resync()
-        self.discarded += n
-        return n
+        return self._flushed(n)
 
     def statistics(self) -> dict:
         """Aravis's stream counters: completed buffers, failures, underruns (since start)."""

@@ -38,6 +38,8 @@ from telefringe.acquisition.base import (
     NotSupported,
     Trigger,
 )
+from telefringe.acquisition.drivers._settings import check_configure
+from telefringe.acquisition.drivers._trigger import SoftwareTriggerBook
 
 __all__ = ["GentlCamera", "open_camera", "list_cameras", "producers"]
 
@@ -99,7 +101,7 @@ def _set(node, value) -> None:
         raise DeviceError(f"cannot set {name} to {value!r}: {exc}") from exc
 
 
-class GentlCamera:
+class GentlCamera(SoftwareTriggerBook):
     """A GenTL camera through harvesters (the :class:`Camera` protocol).
 
     Parameters
@@ -149,10 +151,8 @@ class GentlCamera:
         self._started = False
         self._reset_counts()
 
-    def _reset_counts(self) -> None:
-        self._owed = 0
-        self._last_id: int | None = None
-        self._desync = False
+    def _acquiring(self) -> bool:
+        return self._started
 
     @property
     def _nm(self):
@@ -166,16 +166,8 @@ class GentlCamera:
         """Apply settings while stopped; return those read back (see the Camera protocol).
         A device without ExposureTime (or trigger control) can only FREE_RUN; its
         exposure is then reported as NaN (unknown)."""
-        if self._started:
-            raise DeviceError("configure the camera before start(), not while acquiring")
+        check_configure(self.info, pixel_format, acquiring=self._started)
         nm = self._nm
-        if pixel_format not in PIXEL_FORMAT_MAX:
-            raise NotSupported(f"pixel format {pixel_format!r} is not supported; use one of "
-                               f"{', '.join(PIXEL_FORMAT_MAX)}")
-        if pixel_format not in self.info.pixel_formats:
-            raise NotSupported(f"camera {self.info.model} offers "
-                               f"{', '.join(self.info.pixel_formats) or 'no monochrome format'}"
-                               f", not {pixel_format}")
         nm.PixelFormat.value = pixel_format
         if roi is not None:
             x, y, w, h = (int(v) for v in roi)
@@ -251,12 +243,8 @@ class GentlCamera:
 
     def fire(self) -> None:
         """Software trigger (no-op unless configured with Trigger.SOFTWARE)."""
-        if not self._started:
-            raise DeviceError("start() the camera before fire()")
-        if self.settings.trigger is not Trigger.SOFTWARE:
+        if not self._fire_ready():
             return
-        if self._desync:
-            self._restart()
         self._nm.TriggerSoftware.execute()
         self._owed += 1
 
@@ -316,10 +304,7 @@ class GentlCamera:
                 break
             buf.queue()
             n += 1
-        if self._desync or self._owed:
-            self._restart()
-        self.discarded += n
-        return n
+        return self._flushed(n)
 
     def stop(self) -> None:
         if self._started:

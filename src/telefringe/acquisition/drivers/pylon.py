@@ -37,6 +37,8 @@ from telefringe.acquisition.base import (
     Trigger,
 )
 from telefringe.acquisition.drivers._ids import id_gap
+from telefringe.acquisition.drivers._settings import check_configure, full_roi
+from telefringe.acquisition.drivers._trigger import SoftwareTriggerBook
 
 __all__ = ["PylonCamera", "open_camera", "list_cameras"]
 
@@ -58,7 +60,7 @@ def _avail(node) -> bool:
     return node is not None and genicam.IsAvailable(node)
 
 
-class PylonCamera:
+class PylonCamera(SoftwareTriggerBook):
     """A Basler camera through pypylon (the :class:`Camera` protocol)."""
 
     def __init__(self, serial: str = ""):
@@ -86,10 +88,8 @@ class PylonCamera:
         self._n_buffers = 8
         self._reset_counts()
 
-    def _reset_counts(self) -> None:
-        self._owed = 0
-        self._last_id: int | None = None
-        self._desync = False
+    def _acquiring(self) -> bool:
+        return bool(self._cam.IsGrabbing())
 
     def feature(self, name: str):
         """The GenICam node ``name`` of the camera (for features telefringe does not set,
@@ -108,22 +108,15 @@ class PylonCamera:
         Exposure through ``ExposureTime`` (or ``ExposureTimeAbs``), microseconds; gain
         through ``Gain`` in dB (a camera with raw gain units only accepts gain 0)."""
         c = self._cam
-        if c.IsGrabbing():
-            raise DeviceError("configure the camera before start(), not while acquiring")
-        if pixel_format not in PIXEL_FORMAT_MAX:
-            raise NotSupported(f"pixel format {pixel_format!r} is not supported; use one of "
-                               f"{', '.join(PIXEL_FORMAT_MAX)}")
-        if pixel_format not in self.info.pixel_formats:
-            raise NotSupported(f"camera {self.info.model} offers "
-                               f"{', '.join(self.info.pixel_formats)}, not {pixel_format}")
+        check_configure(self.info, pixel_format, acquiring=c.IsGrabbing())
         c.PixelFormat.Value = pixel_format
-        x, y, w, h = roi if roi is not None else (0, 0, self.info.width, self.info.height)
+        x, y, w, h = full_roi(roi, self.info)
         c.OffsetX.Value = 0
         c.OffsetY.Value = 0
-        c.Width.Value = int(w)
-        c.Height.Value = int(h)
-        c.OffsetX.Value = int(x)
-        c.OffsetY.Value = int(y)
+        c.Width.Value = w
+        c.Height.Value = h
+        c.OffsetX.Value = x
+        c.OffsetY.Value = y
         for auto in ("ExposureAuto", "GainAuto"):
             n = getattr(c, auto, None)
             if _avail(n) and genicam.IsWritable(n):
@@ -182,12 +175,8 @@ class PylonCamera:
 
     def fire(self) -> None:
         """Software trigger (no-op unless configured with Trigger.SOFTWARE)."""
-        if not self._cam.IsGrabbing():
-            raise DeviceError("start() the camera before fire()")
-        if self.settings.trigger is not Trigger.SOFTWARE:
+        if not self._fire_ready():
             return
-        if self._desync:
-            self._restart()
         if not self._cam.WaitForFrameTriggerReady(1000, pylon.TimeoutHandling_Return):
             raise DeviceError("the camera did not become ready for a trigger within 1 s")
         self._cam.ExecuteSoftwareTrigger()
@@ -242,10 +231,7 @@ class PylonCamera:
                 break
             r.Release()
             n += 1
-        if self._desync or self._owed:
-            self._restart()
-        self.discarded += n
-        return n
+        return self._flushed(n)
 
     def stop(self) -> None:
         if self._cam is not None and self._cam.IsGrabbing():
