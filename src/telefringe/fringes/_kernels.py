@@ -233,15 +233,57 @@ def _acc4(cast, r0, r1, r2, r3, a0, a1, a2, a3, b0, b1, b2, b3, nj, s, c, top):
 
 
 @nb.njit(inline="always")
-def _acc_plain(row, a, b, nj, sa, sb, sn):
-    """sa += a v, sb += b v, sn += v over one image row (float32: the full decode's
-    background, exact for integer samples below 2^16 and N <= 256, and second-harmonic
-    sums, only used for the noise level)."""
+def _acc4_full(cast, r0, r1, r2, r3, sw, cw, s2w, c2w, ew, mem, k, nj, s, c, top, s2, c2, sa):
+    """:func:`_acc4` and, in the same pass over the samples, the full decode's float32 sums
+    of the second harmonic (weights p, q) and of the samples (weights e: 1, or 0 for the
+    padding steps), step by step in order: ``s2 += p_k v_k``, ``c2 += q_k v_k``, ``sa +=
+    e_k v_k`` (float32: the background, exact for integer samples below 2^16 and N <= 256;
+    the second-harmonic sums only serve the noise level). The weights of steps k to k + 3
+    are row ``mem`` of sw, cw (the sums' type), s2w, c2w, ew (float32). (Fewer than 31
+    arguments: Python passes more as *args, which numba cannot inline.)"""
+    a0, a1, a2, a3 = sw[mem, k], sw[mem, k + 1], sw[mem, k + 2], sw[mem, k + 3]
+    b0, b1, b2, b3 = cw[mem, k], cw[mem, k + 1], cw[mem, k + 2], cw[mem, k + 3]
+    p0, p1, p2, p3 = s2w[mem, k], s2w[mem, k + 1], s2w[mem, k + 2], s2w[mem, k + 3]
+    q0, q1, q2, q3 = c2w[mem, k], c2w[mem, k + 1], c2w[mem, k + 2], c2w[mem, k + 3]
+    e0, e1, e2, e3 = ew[mem, k], ew[mem, k + 1], ew[mem, k + 2], ew[mem, k + 3]
     for j in range(nj):
-        v = _F32(row[j])
-        sa[j] += a * v
-        sb[j] += b * v
-        sn[j] += v
+        v0 = r0[j]
+        v1 = r1[j]
+        v2 = r2[j]
+        v3 = r3[j]
+        f0 = cast(v0)
+        f1 = cast(v1)
+        f2 = cast(v2)
+        f3 = cast(v3)
+        s[j] += (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
+        c[j] += (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
+        m01 = v0 if v0 > v1 else v1
+        m23 = v2 if v2 > v3 else v3
+        m = m01 if m01 > m23 else m23
+        t = top[j]
+        top[j] = m if m > t else t
+        g0 = _F32(v0)
+        g1 = _F32(v1)
+        g2 = _F32(v2)
+        g3 = _F32(v3)
+        x = s2[j]
+        x += p0 * g0
+        x += p1 * g1
+        x += p2 * g2
+        x += p3 * g3
+        s2[j] = x
+        y = c2[j]
+        y += q0 * g0
+        y += q1 * g1
+        y += q2 * g2
+        y += q3 * g3
+        c2[j] = y
+        z = sa[j]
+        z += e0 * g0
+        z += e1 * g1
+        z += e2 * g2
+        z += e3 * g3
+        sa[j] = z
 
 
 @nb.njit(inline="always", error_model="numpy")
@@ -262,7 +304,7 @@ def _phase32(s, c, ph, m2, nj):
 
 
 @nb.njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract"})
-def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, cw, s2w, c2w,
+def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, cw, s2w, c2w, ew,
                  periods, length, tables, has_table, nf_tables, has_nf, ser_a, ser_b,
                  ser_c0, ser_d, ser_n, has_series, ser_da, ser_db, nf_series, max_value,
                  min_mod2,
@@ -288,7 +330,8 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
     exact32 : (members,) bool: integer samples and weights in {0, +-1/2, +-1}: the float32
         sums are exact.  nsteps : (L,) int64.
     sw32, cw32, sw, cw : (members, K) sin / cos weights (float32, float64), K a multiple
-        of 4, zero-padded.  s2w, c2w : (members, K) float64, second-harmonic weights.
+        of 4, zero-padded.  s2w, c2w : (members, K) float32, second-harmonic weights.
+    ew : (members, K) float32, 1 for each step and 0 for the padding (the background sum).
     periods : (L,) float64.  length : float, projector pixels.
     tables : (L, M) float32 corrections g(measured phase) applied by linear interpolation
         where has_table (L,) bool.
@@ -383,6 +426,11 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                         ts = s32 if first_mem else ms32
                         tc = c32 if first_mem else mc32
                         tt = top if first_mem else mtop
+                        ta = sa if first_mem else msa
+                        t2s = s2 if first_mem else ms2
+                        t2c = c2 if first_mem else mc2
+                        if full:
+                            _zero(t2s, t2c, ta, nj)
                         if exact32[mem]:
                             _zero(ts, tc, tt, nj)
                         else:
@@ -391,7 +439,15 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                             k1 = min(k + 1, n_k - 1)
                             k2 = min(k + 2, n_k - 1)
                             k3 = min(k + 3, n_k - 1)
-                            if exact32[mem]:
+                            if full and exact32[mem]:
+                                _acc4_full(_as32, st[k, r, j0:j1], st[k1, r, j0:j1],
+                                           st[k2, r, j0:j1], st[k3, r, j0:j1], sw32, cw32,
+                                           s2w, c2w, ew, mem, k, nj, ts, tc, tt, t2s, t2c, ta)
+                            elif full:
+                                _acc4_full(_as64, st[k, r, j0:j1], st[k1, r, j0:j1],
+                                           st[k2, r, j0:j1], st[k3, r, j0:j1], sw, cw, s2w,
+                                           c2w, ew, mem, k, nj, s64, c64, tt, t2s, t2c, ta)
+                            elif exact32[mem]:
                                 _acc4(_as32, st[k, r, j0:j1], st[k1, r, j0:j1],
                                       st[k2, r, j0:j1], st[k3, r, j0:j1],
                                       sw32[mem, k], sw32[mem, k + 1], sw32[mem, k + 2],
@@ -405,14 +461,6 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                                       cw[mem, k + 2], cw[mem, k + 3], nj, s64, c64, tt)
                         if not exact32[mem]:
                             _to32(s64, c64, ts, tc, nj)
-                        if full:
-                            ta = sa if first_mem else msa
-                            t2s = s2 if first_mem else ms2
-                            t2c = c2 if first_mem else mc2
-                            _zero(t2s, t2c, ta, nj)
-                            for k in range(n_k):
-                                _acc_plain(st[k, r, j0:j1], _F32(s2w[mem, k]),
-                                           _F32(c2w[mem, k]), nj, t2s, t2c, ta)
                         e = exposure[mem]
                         if first_mem:
                             for j in range(nj):

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from telefringe import _recycle
 from telefringe.fringes.errors import DecodeError, LadderDecodeError
 from telefringe.fringes.fast import _MAX_MEMBERS, FastCoordinates, _fused, decode_axis_fast
 from telefringe.fringes.noise import resolve_noise
@@ -588,15 +589,20 @@ def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
     u = res.get("u")
     v = res.get("v")
     first = u if u is not None else v
-    mask = np.ones(first.valid.shape, dtype=bool)
-    saturated = np.zeros_like(mask)
-    shadow = np.zeros_like(mask)
-    reliable = np.ones_like(mask)
+    # the first axis' flags copied, then the other's combined in (recycled memory: no
+    # fresh pages to map for these four planes)
+    mask, saturated, shadow, reliable = (
+        _recycle.empty(first.valid.shape, dtype=bool) for _ in range(4))
+    np.copyto(mask, first.valid)
+    np.copyto(saturated, first.saturated)
+    np.copyto(shadow, first.shadow)
+    np.copyto(reliable, first.order_reliable)
     for r in res.values():
-        mask &= r.valid
-        saturated |= r.saturated
-        shadow |= r.shadow
-        reliable &= r.order_reliable
+        if r is not first:
+            mask &= r.valid
+            saturated |= r.saturated
+            shadow |= r.shadow
+            reliable &= r.order_reliable
     return ProjectorCoordinates(
         u_p=None if u is None else u.coordinate,
         v_p=None if v is None else v.coordinate,

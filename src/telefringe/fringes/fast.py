@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from telefringe import _recycle
 from telefringe.fringes.errors import DecodeError, LadderDecodeError
 from telefringe.fringes.nonlinearity import PhaseErrorModel
 from telefringe.fringes.phase import NoiseModel
@@ -44,6 +45,8 @@ _TABLE_CACHE: collections.OrderedDict = collections.OrderedDict()
 _TABLE_CACHE_LOCK = threading.Lock()
 _TABLE_CACHE_MAX_ENTRIES = 64
 _TABLE_CACHE_MAX_BYTES = 64 * 2 ** 20
+#: the corrections' Fourier series (:func:`_model_series`), least recently used first
+_SERIES_CACHE: collections.OrderedDict = collections.OrderedDict()
 
 
 def _table_bytes(value) -> int:
@@ -52,36 +55,21 @@ def _table_bytes(value) -> int:
                                    + series[1].nbytes)
 
 
-def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """Correction table g (float64, the measured phase minus the true one), noise-factor
-    table ``1 / (1 + e')`` (float64) of ``model`` on the grid ``-pi + 2 pi j / n``, with n
-    (>= n_min, from 4096 by factors of 4) the first size whose linear interpolation error,
-    checked at every mid-point against the exact inverse, is <= 1e-8 rad, and g as a
-    Fourier series (:func:`_series`; with a fifth element, whether 1 - g' from it is the
-    noise factor within NF_SERIES_TOL: :func:`_series_noise_ok`). Cached (thread-safe, at most
-    ``_TABLE_CACHE_MAX_ENTRIES`` models and ``_TABLE_CACHE_MAX_BYTES``, least recently
-    used evicted first); the arrays are read-only."""
-    key = (model.periods, tuple(model.harmonics), np.asarray(model.cos_coef).tobytes(),
-           np.asarray(model.sin_coef).tobytes(), int(n_min))
+def _model_key(model: PhaseErrorModel) -> tuple:
+    return (model.periods, tuple(model.harmonics), np.asarray(model.cos_coef).tobytes(),
+            np.asarray(model.sin_coef).tobytes())
+
+
+def _cache_get(key):
     with _TABLE_CACHE_LOCK:
         hit = _TABLE_CACHE.get(key)
         if hit is not None:
             _TABLE_CACHE.move_to_end(key)
-            return hit
-    # (computed outside the lock: two threads may build the same tables, equal ones)
-    n = 4096
-    while True:
-        g, err = model.correction_table(n)
-        if n >= n_min and (err <= 1e-8 or n >= 2 ** 20):
-            break
-        n *= 4
-    grid = -np.pi + TWO_PI * np.arange(n) / n
-    nf = np.array(model.noise_factor(grid), dtype=np.float64)
-    series = _series(g)
-    if series is not None:
-        series = (*series, _series_noise_ok(series, nf))
-    value = (g, nf, series)
-    for arr in (g, nf, *(() if value[2] is None else value[2][:2])):
+        return hit
+
+
+def _cache_put(key, value) -> None:
+    for arr in (value[0], value[1], *(() if value[2] is None else value[2][:2])):
         arr.flags.writeable = False
     with _TABLE_CACHE_LOCK:
         _TABLE_CACHE[key] = value
@@ -91,7 +79,68 @@ def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.nd
                                          or total > _TABLE_CACHE_MAX_BYTES):
             _, old = _TABLE_CACHE.popitem(last=False)
             total -= _table_bytes(old)
+
+
+def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Correction table g (float64, the measured phase minus the true one), noise-factor
+    table ``1 / (1 + e')`` (float64) of ``model`` on the grid ``-pi + 2 pi j / n``, with n
+    (>= n_min, from 4096 by factors of 4) the first size whose linear interpolation error,
+    checked at every mid-point against the exact inverse, is <= 1e-8 rad, and g as a
+    Fourier series (:func:`_model_series`). Cached (thread-safe, at most
+    ``_TABLE_CACHE_MAX_ENTRIES`` models and ``_TABLE_CACHE_MAX_BYTES``, least recently
+    used evicted first); the arrays are read-only. The fused kernel needs the tables only
+    where the series cannot stand in for them (building them costs 0.1-0.5 s of CPU)."""
+    key = _model_key(model) + (int(n_min),)
+    hit = _cache_get(key)
+    if hit is not None:
+        return hit
+    # (computed outside the lock: two threads may build the same tables, equal ones)
+    n = 4096
+    while True:
+        g, err = model.correction_table(n)
+        if n >= n_min and (err <= 1e-8 or n >= 2 ** 20):
+            break
+        n *= 4
+    grid = -np.pi + TWO_PI * np.arange(n) / n
+    nf = np.array(model.noise_factor(grid), dtype=np.float64)
+    value = (g, nf, _model_series(model))
+    _cache_put(key, value)
     return value
+
+
+#: the samples of the exact correction its Fourier series is computed from and checked on
+#: (the series' highest harmonic is below SERIES_MAX_TERMS * d < 1024: the FFT of 4096
+#: exact samples gives its coefficients to rounding, aliasing ~ the harmonics >= 3000)
+_SERIES_GRID = 4096
+
+
+def _model_series(model: PhaseErrorModel):
+    """The correction g of ``model`` as a Fourier series (:func:`_series`, from g at
+    ``_SERIES_GRID`` points solved exactly by Newton's method) with a fifth element:
+    whether 1 - g' from it is the exact noise factor ``1 / (1 + e'(true phase))`` within
+    NF_SERIES_TOL at those points (:func:`_series_noise_ok`); None when the series needs
+    more than SERIES_MAX_TERMS terms. Cached (at most ``_TABLE_CACHE_MAX_ENTRIES`` models,
+    a few kB each, under the tables' lock; its arrays read-only)."""
+    key = _model_key(model)
+    with _TABLE_CACHE_LOCK:
+        if key in _SERIES_CACHE:
+            _SERIES_CACHE.move_to_end(key)
+            return _SERIES_CACHE[key]
+    n = _SERIES_GRID
+    grid = -np.pi + TWO_PI * np.arange(n) / n
+    phi = model._invert(grid)  # the true phases
+    series = _series(grid - phi)
+    if series is not None:
+        nf = 1.0 / (1.0 + model.slope(phi))
+        series = (*series, _series_noise_ok(series, nf))
+        for arr in series[:2]:
+            arr.flags.writeable = False
+    with _TABLE_CACHE_LOCK:
+        _SERIES_CACHE[key] = series
+        _SERIES_CACHE.move_to_end(key)
+        while len(_SERIES_CACHE) > _TABLE_CACHE_MAX_ENTRIES:
+            _SERIES_CACHE.popitem(last=False)
+    return series
 
 
 #: the Fourier series of a correction may drop terms summing to at most this (rad)
@@ -209,6 +258,7 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     k4 = 4 * ((max(steps) + 3) // 4)  # the kernel sums steps four at a time
     sw, cw = np.zeros((n_mem, k4)), np.zeros((n_mem, k4))
     s2w, c2w = np.zeros((n_mem, k4)), np.zeros((n_mem, k4))
+    ew = np.zeros((n_mem, k4), dtype=np.float32)  # 1 for the steps, 0 for the padding
     stacks = []
     dt = members[0][0].dtype
     integer = dt.kind in "ui" and dt.itemsize <= 2
@@ -217,22 +267,26 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
         c, s, c2, s2, exact = _weights(k, off)
         cw[i, :k], sw[i, :k] = c, s
         c2w[i, :k], s2w[i, :k] = c2, s2
+        ew[i, :k] = 1.0
         # integer samples below 2^16, weights 0, +-1/2, +-1 and N <= 128: every partial
         # sum is a multiple of 1/2 below 2^23, so the float32 sums are exact
         exact32[i] = integer and k <= 128 and exact
         stacks.append(np.ascontiguousarray(st))
-    m_tab = 1
     use = [m is not None and bool(m.harmonics) for m in (models or [None] * n_lev)]
-    if any(use):
-        m_tab = max(_model_tables(m, 1)[0].size for m, u in zip(models, use, strict=True)
+    series = [_model_series(m) if u else None for m, u in zip(models or [None] * n_lev, use,
+                                                                strict=True)]
+    # tables only where the series cannot stand in: no series (the correction table) or
+    # its noise factor not within NF_SERIES_TOL (the noise-factor table)
+    need = [u and (s is None or not s[4]) for u, s in zip(use, series, strict=True)]
+    m_tab = 1
+    if any(need):
+        m_tab = max(_model_tables(m, 1)[0].size for m, u in zip(models, need, strict=True)
                     if u)
     tables = np.zeros((n_lev, m_tab), dtype=np.float32)
     nf_tables = np.ones((n_lev, m_tab))
-    series = [None] * n_lev
-    for i, u in enumerate(use):
+    for i, u in enumerate(need):
         if u:
-            g, nf, series[i] = _model_tables(models[i], m_tab)
-            tables[i], nf_tables[i] = g, nf
+            tables[i], nf_tables[i] = _model_tables(models[i], m_tab)[:2]
     n_ser = max([len(s[0]) for s in series if s is not None] + [1])
     ser_a = np.zeros((n_lev, n_ser), dtype=np.float32)
     ser_b = np.zeros((n_lev, n_ser), dtype=np.float32)
@@ -259,13 +313,14 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     min_mod2[low] = np.nextafter(min_mod2[low], np.float32(np.inf))
     shape = stacks[0].shape[1:]
     one = (1, 1)
-    out = {"coordinate": np.empty(shape), "valid": np.empty(shape, dtype=bool),
-           "modulation": np.empty(shape)}
+    # (recycled memory: every element is written by the kernel)
+    out = {"coordinate": _recycle.empty(shape), "valid": _recycle.empty(shape, dtype=bool),
+           "modulation": _recycle.empty(shape)}
     names = (("sigma", np.float64), ("background", np.float64), ("exposure", np.float64),
              ("saturated", bool), ("low_modulation", bool), ("shadow", bool),
              ("order_reliable", bool))
     for name, t in names:
-        out[name] = np.empty(shape if full else one, dtype=t)
+        out[name] = _recycle.empty(shape if full else one, dtype=t)
     noise = noise if noise is not None else NoiseModel()
     if n_mem > _MAX_MEMBERS:
         raise DecodeError(f"the fused kernel takes at most {_MAX_MEMBERS} phase groups per "
@@ -276,7 +331,8 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     _k.fused_ladder(
         tuple(stacks), np.asarray(lev_first, dtype=np.int64),
         np.asarray([e for _, e in members], dtype=np.float64), exact32, nst,
-        sw.astype(np.float32), cw.astype(np.float32), sw, cw, s2w, c2w,
+        sw.astype(np.float32), cw.astype(np.float32), sw, cw, s2w.astype(np.float32),
+        c2w.astype(np.float32), ew,
         np.asarray(periods, dtype=np.float64), float(length), tables,
         np.asarray(use, dtype=np.bool_) & ~has_series, nf_tables,
         np.asarray(use, dtype=np.bool_), ser_a, ser_b, ser_c0, ser_d, ser_n, has_series,

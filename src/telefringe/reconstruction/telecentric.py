@@ -50,6 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from telefringe import _recycle
 from telefringe.devices import _telecentric_kernels as _tk
 from telefringe.devices.rig import Rig
 from telefringe.devices.telecentric import TelecentricDevice
@@ -228,11 +229,12 @@ class Triangulator:
         mask_f = flat(mask_in.astype(bool, copy=False))
         # x, y, z planes: the kernels write contiguous planes, the cloud views them as
         # (rows, cols, 3)
-        xyz_planar = np.empty((3,) + self.shape)
+        # (recycled memory: the kernels write every element)
+        xyz_planar = _recycle.empty((3,) + self.shape)
         x, y, z = (xyz_planar[k].reshape(n) for k in range(3))
-        sig = np.empty(n)
-        flags = np.empty(n, dtype=np.uint8)
-        ok = np.empty(n, dtype=np.bool_)
+        sig = _recycle.empty(n)
+        flags = _recycle.empty(n, dtype=np.uint8)
+        ok = _recycle.empty(n, dtype=np.bool_)
         Rc = np.ascontiguousarray(self.rig.camera.R_dev_world)
         kp = np.array((u0, v0, du, dv, ki.k1, s1, s2, W, H, coef[0, 0], coef[0, 1], Bu,
                        coef[1, 0], coef[1, 1], Bv, t_p[0], t_p[1], 1.0 / du, 1.0 / dv,
@@ -243,7 +245,7 @@ class Triangulator:
         if has_v:
             vp_f = flat(vp)
             sv_f = flat(sv)
-            res = np.empty(n)
+            res = _recycle.empty(n)
             _solve_fast(a_f, b_f, up_f, vp_f, su_f, sv_f, mask_f, True, combine, kp, Rc,
                         max_res, max_sz, x, y, z, sig, res, flags, ok)
             n_slow = np.count_nonzero(flags & FLAG_NOT_CONVERGED)
