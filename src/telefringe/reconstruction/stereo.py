@@ -59,6 +59,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from telefringe.devices.rig import Rig
+from telefringe.geometry.interpolation import bilinear
 from telefringe.reconstruction import _generic_kernels as _gk
 from telefringe.reconstruction import _stereo_kernels as _sk
 from telefringe.reconstruction._rig import as_rig as _as_rig
@@ -175,30 +176,6 @@ def _maps(coords, shape, label):
     return sh, out
 
 
-def _bilinear(M, u, v):
-    """Value, gradient (d/du, d/dv) and the four corner indices/weights of the bilinear
-    interpolation of M (rows, cols) at (u, v) (any shape); NaN outside or where a corner
-    is NaN."""
-    rows, cols = M.shape
-    with np.errstate(invalid="ignore"):
-        inside = (u >= 0) & (u <= cols - 1) & (v >= 0) & (v <= rows - 1)
-    uu = np.where(inside, u, 0.0)
-    vv = np.where(inside, v, 0.0)
-    j = np.minimum(np.floor(uu).astype(np.intp), cols - 2)
-    i = np.minimum(np.floor(vv).astype(np.intp), rows - 2)
-    fx = uu - j
-    fy = vv - i
-    m00 = M[i, j]
-    m01 = M[i, j + 1]
-    m10 = M[i + 1, j]
-    m11 = M[i + 1, j + 1]
-    val = (1 - fy) * ((1 - fx) * m00 + fx * m01) + fy * ((1 - fx) * m10 + fx * m11)
-    gu = (1 - fy) * (m01 - m00) + fy * (m11 - m10)
-    gv = (1 - fx) * (m10 - m00) + fx * (m11 - m01)
-    val = np.where(inside, val, np.nan)
-    return val, gu, gv, (i, j, fx, fy)
-
-
 def _interp_var(S, corners):
     """Variance of a bilinear interpolation of independent values of std S."""
     i, j, fx, fy = corners
@@ -312,14 +289,14 @@ def match_stereo(rig, coords_1, coords_2, *, max_residual: float | None = 1.0,
                 oo, dd, target = oo[sel], dd[sel], target[sel]
             X = oo + s[..., None] * dd
             u2, v2 = cam2.project(X)
-            val = _bilinear(A2, u2, v2)[0]
+            val = bilinear(A2, u2, v2)[0]
             return val - target
 
         with np.errstate(all="ignore"):
             S = sr[:, None] + offsets[None, :]
             X = oo[:, None, :] + S[..., None] * dd[:, None, :]
             u2, v2 = cam2.project(X)
-            F = _bilinear(A2, u2, v2)[0] - target[:, None]
+            F = bilinear(A2, u2, v2)[0] - target[:, None]
             crossing = (np.isfinite(F[:, :-1]) & np.isfinite(F[:, 1:])
                         & ((F[:, :-1] <= 0) != (F[:, 1:] <= 0)))
         n_cross = crossing.sum(axis=1)
@@ -390,7 +367,7 @@ def match_stereo(rig, coords_1, coords_2, *, max_residual: float | None = 1.0,
             # axis weighted by 1 / (sigma_1^2 + sigma_2^2) (equal weights without sigmas)
             with np.errstate(all="ignore"):
                 X0 = oo_s + s_sol[:, None] * dd_s
-                corners = _bilinear(A2, *cam2.project(X0))[3]
+                corners = bilinear(A2, *cam2.project(X0))[3]
                 wa = 1.0 / _pair_var(S1, S2, gi, corners)
                 wb = 1.0 / _pair_var(T1, T2, gi, corners)
                 for _ in range(10):
@@ -405,14 +382,14 @@ def match_stereo(rig, coords_1, coords_2, *, max_residual: float | None = 1.0,
         X = oo_s + s_sol[:, None] * dd_s
         with np.errstate(all="ignore"):
             u2s, v2s = cam2.project(X)
-            va, ga_u, ga_v, corners = _bilinear(A2, u2s, v2s)
+            va, ga_u, ga_v, corners = bilinear(A2, u2s, v2s)
             # along-line slope of the second camera's phase: gradient . dp2/ds
             _, _, J = cam2.project_jacobian(X)
             dp = np.einsum("mij,mj->mi", J, dd_s)
             ga = ga_u * dp[:, 0] + ga_v * dp[:, 1]
             var_a = _pair_var(S1, S2, gi, corners)
             if combine:
-                vb, gb_u, gb_v, _ = _bilinear(B2, u2s, v2s)
+                vb, gb_u, gb_v, _ = bilinear(B2, u2s, v2s)
                 gb = gb_u * dp[:, 0] + gb_v * dp[:, 1]
                 var_b = _pair_var(T1, T2, gi, corners)
                 sg = 1.0 / np.sqrt(ga * ga / var_a + gb * gb / var_b)
@@ -420,7 +397,7 @@ def match_stereo(rig, coords_1, coords_2, *, max_residual: float | None = 1.0,
                 sg = np.sqrt(var_a) / np.abs(ga)
             f = np.zeros(sol.size, dtype=np.uint8)
             if other is not None:
-                vb = _bilinear(B2, u2s, v2s)[0]
+                vb = bilinear(B2, u2s, v2s)[0]
                 pa = va - A1[gi]
                 pb = vb - B1[gi]
                 res = np.hypot(pa, pb)
@@ -559,8 +536,8 @@ def _slopes(cam2, A2, B2, oo, dd, s, a_obs, b_obs):
     """Along-line slopes and mismatches of both axes at s."""
     X = oo + s[:, None] * dd
     u2, v2 = cam2.project(X)
-    va, gau, gav, _ = _bilinear(A2, u2, v2)
-    vb, gbu, gbv, _ = _bilinear(B2, u2, v2)
+    va, gau, gav, _ = bilinear(A2, u2, v2)
+    vb, gbu, gbv, _ = bilinear(B2, u2, v2)
     _, _, J = cam2.project_jacobian(X)
     dp = np.einsum("mij,mj->mi", J, dd)
     return (gau * dp[:, 0] + gav * dp[:, 1], gbu * dp[:, 0] + gbv * dp[:, 1],
