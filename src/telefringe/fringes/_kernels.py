@@ -208,6 +208,24 @@ def _zero(a, b, c, nj):
 
 
 @nb.njit(inline="always")
+def _sum4(cast, v0, v1, v2, v3, a0, a1, a2, a3, b0, b1, b2, b3, s, c, top, j):
+    """Sample j of 4 steps (v0..v3, input dtype) into the sums s[j], c[j] (weights a, b;
+    ``cast`` gives the sums' type) and the running maximum top[j]: the shared body of
+    :func:`_acc4` and :func:`_acc4_full`."""
+    f0 = cast(v0)
+    f1 = cast(v1)
+    f2 = cast(v2)
+    f3 = cast(v3)
+    s[j] += (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
+    c[j] += (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
+    m01 = v0 if v0 > v1 else v1
+    m23 = v2 if v2 > v3 else v3
+    m = m01 if m01 > m23 else m23
+    t = top[j]
+    top[j] = m if m > t else t
+
+
+@nb.njit(inline="always")
 def _acc4(cast, r0, r1, r2, r3, a0, a1, a2, a3, b0, b1, b2, b3, nj, s, c, top):
     """Add 4 steps' weighted samples of columns j0..j0+nj to the sums s, c and the running
     maximum ``top`` (input dtype; started at 0, which only serves the saturation test
@@ -219,17 +237,7 @@ def _acc4(cast, r0, r1, r2, r3, a0, a1, a2, a3, b0, b1, b2, b3, nj, s, c, top):
         v1 = r1[j]
         v2 = r2[j]
         v3 = r3[j]
-        f0 = cast(v0)
-        f1 = cast(v1)
-        f2 = cast(v2)
-        f3 = cast(v3)
-        s[j] += (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
-        c[j] += (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
-        m01 = v0 if v0 > v1 else v1
-        m23 = v2 if v2 > v3 else v3
-        m = m01 if m01 > m23 else m23
-        t = top[j]
-        top[j] = m if m > t else t
+        _sum4(cast, v0, v1, v2, v3, a0, a1, a2, a3, b0, b1, b2, b3, s, c, top, j)
 
 
 @nb.njit(inline="always")
@@ -251,17 +259,7 @@ def _acc4_full(cast, r0, r1, r2, r3, sw, cw, s2w, c2w, ew, mem, k, nj, s, c, top
         v1 = r1[j]
         v2 = r2[j]
         v3 = r3[j]
-        f0 = cast(v0)
-        f1 = cast(v1)
-        f2 = cast(v2)
-        f3 = cast(v3)
-        s[j] += (a0 * f0 + a1 * f1) + (a2 * f2 + a3 * f3)
-        c[j] += (b0 * f0 + b1 * f1) + (b2 * f2 + b3 * f3)
-        m01 = v0 if v0 > v1 else v1
-        m23 = v2 if v2 > v3 else v3
-        m = m01 if m01 > m23 else m23
-        t = top[j]
-        top[j] = m if m > t else t
+        _sum4(cast, v0, v1, v2, v3, a0, a1, a2, a3, b0, b1, b2, b3, s, c, top, j)
         g0 = _F32(v0)
         g1 = _F32(v1)
         g2 = _F32(v2)
