@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-DECODE = {"gamma_correction": False}  # as benchmarks/centre_bias.py's calibrations
+DECODE = {"gamma_correction": True}  # as benchmarks/centre_bias.py's calibrations
 
 
-def calibrate_seeds(cache: Path, seeds, n_poses: int, *, log=print):
+def calibrate_seeds(cache: Path, seeds, n_poses: int, *, log=print, available=False):
     """Calibrate the ``fast`` rig once per seed (random poses and noise). The observations
     (detected centres, projector read there: the call calibrate_from_scans makes) are
     cached in ``cache`` under the digest of the code making them
@@ -48,7 +48,10 @@ def calibrate_seeds(cache: Path, seeds, n_poses: int, *, log=print):
                           "calibration"))
     rigs = []
     for s in seeds:
-        path = cache / f"rig_fast_p{n_poses}_poses_and_noise_s{s:03d}_{digest}.json"
+        tag = "g" if DECODE["gamma_correction"] else "ng"
+        path = cache / f"rig_fast_p{n_poses}_poses_and_noise_s{s:03d}_{tag}_{digest}.json"
+        if available and not path.exists():
+            continue
         if not path.exists():
             # poses drawn anew with the noise: a fixed pose set would keep the same
             # systematic part of the observations' errors (which the covariance, scaled by
@@ -284,7 +287,11 @@ def main(argv=None) -> int:
     ap.add_argument("--poses", type=int, default=6)
     ap.add_argument("--cache", type=Path,
                     default=Path(tempfile.gettempdir()) / "telefringe-uncertainty")
+    ap.add_argument("--first-seed", type=int, default=0,
+                    help="seeds first-seed .. first-seed + seeds - 1 (to calibrate in parts)")
     ap.add_argument("--calibrate-only", action="store_true")
+    ap.add_argument("--available", action="store_true",
+                    help="use only the seeds whose calibration is already in the cache")
     ap.add_argument("--only", default=",".join(SCENES),
                     help="comma-separated held-out scenes to measure (default: all of "
                     f"{', '.join(SCENES)})")
@@ -292,7 +299,8 @@ def main(argv=None) -> int:
     only = tuple(x.strip() for x in args.only.split(",") if x.strip())
     if not only or any(x not in SCENES for x in only):
         ap.error(f"--only takes a comma-separated subset of {', '.join(SCENES)}")
-    vrig, rigs = calibrate_seeds(args.cache, range(args.seeds), args.poses)
+    vrig, rigs = calibrate_seeds(args.cache, range(args.first_seed, args.first_seed + args.seeds),
+                                 args.poses, available=args.available)
     if args.calibrate_only:
         return 0
     t0 = time.process_time()
@@ -300,7 +308,8 @@ def main(argv=None) -> int:
 
     from centre_bias import code_digest
 
-    scene_file = args.cache / f"held_out_scenes_{code_digest()}.pickle"
+    tag = "g" if DECODE["gamma_correction"] else "ng"
+    scene_file = args.cache / f"held_out_scenes_{tag}_{code_digest()}.pickle"
     if scene_file.exists():
         scenes = pickle.loads(scene_file.read_bytes())
         if "radiance" not in scenes["sphere"]:  # a cache from before the sphere's model
