@@ -334,8 +334,8 @@ def measure_sphere(cloud: PointCloud, *, min_height: float | None = None,
     cloud : PointCloud (mm).
     min_height, edge_px, seed : see above (mm, px, the plane fit's seed).
     rig : Rig or RigCalibration, optional, one camera and a projector, or two cameras
-        and the projector (its model traces the projector coordinates: a nominal one
-        serves where the projector was not calibrated).
+        and the projector (its model traces the projector coordinates the cameras see:
+        a two-camera rig needs the projector calibrated too).
     image : (rows, cols) array_like, optional, the brightness of the scene in the
         camera's pixels (e.g. points.npz ``radiance``, the fringes' mean level).
     image_2 : (rows_2, cols_2) array_like, the second camera's brightness (two cameras).
@@ -829,12 +829,6 @@ def _design(p, d, T, x, free: bool):
     if free:
         J[:, 4:] = -np.sum(nn * d, axis=1)[:, None] * dv
     return dist - x[3], J, nn
-
-
-def _spread_design(p, d, a1, a2, x, free: bool):
-    """:func:`_design` of one camera's terms (a1, a2): residuals, Jacobian (n, 4 or 5)
-    in (cx, cy, cz, r[, s2]) and the unit normals (n, 3)."""
-    return _design(p, d, np.column_stack([a1, a2]), np.asarray(x, dtype=np.float64), free)
 
 
 def spread_design(measurement, points, directions):
