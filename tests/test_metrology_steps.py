@@ -183,7 +183,7 @@ def test_step_sigma_covers_a_ripple_over_placements():
     the Monte Carlo goal (0.75-1.25): the autocovariance is used out to every lag the
     fit spans (the ``fast`` virtual rig's step gauge: an 8-bit projector's quantisation
     ripple, 4 fringe periods long, on 5 mm levels). A taper to the narrowest level's width
-    gave 1.46 here (1.5 on the virtual rig): it cut the correlation along the levels and
+    gave 1.46 here (1.44 on the virtual rig): it cut the correlation along the levels and
     between neighbours."""
     shape = (200, 360)
     x, y = camera_grid(shape, pixel=0.05, origin=(0.0, 10.0))
