@@ -144,8 +144,8 @@ def _correlated_covariance(xyz, labels, n, offsets):
     few pairs estimate them). The fit's sandwich ``M^-1 (A^T C A) M^-1`` (A the design
     matrix, M = A^T A) gives the parameters' covariance: the expected covariance of the
     fit's errors over placements of the gauge relative to a ripple of that
-    autocovariance. With uncorrelated residuals it is close to the usual ``s^2 M^-1``;
-    a level's mean error from a structure wider than a pixel (a level a few fringe
+    autocovariance. With uncorrelated residuals it scatters about the usual ``s^2 M^-1``
+    (below); a level's mean error from a structure wider than a pixel (a level a few fringe
     periods wide, or less than one period of a ripple that repeats every few fringes) is
     what it adds.
 
