@@ -12,7 +12,7 @@ from telefringe.cli._common import detail, info, progress_bar, read_scan_with_pr
 def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
                           pixel_mm: float | None = None, max_residual: float | None = 1.0,
                           ply: bool = True, title: str | None = None, second=None,
-                          **decode_options):
+                          read=None, **decode_options):
     """Read a scan folder, reconstruct it with ``rig`` (a Rig, or a RigCalibration whose
     projector nonlinearity is then used) and write ``output``. With ``second`` (the scan
     folder of the rig's second camera), match the two cameras' phases instead (stereo).
@@ -20,6 +20,9 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     Writes atomically (the folder appears complete or not at all): ``points.npz``,
     ``cloud.ply``, ``heightmap.tif`` + ``heightmap.json`` (+ ``heightmap_sigma.tif``),
     ``heightmap.png`` and ``summary.json``. User problems raise ``InputError``.
+    ``read(folder) -> Scan`` reads each scan folder (default
+    :func:`telefringe.cli._common.read_scan_with_progress`; the command passes scans
+    it began reading beforehand).
 
     Returns
     -------
@@ -39,8 +42,9 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     # the scan's projector and camera sizes are checked against the rig by reconstruct_scan
     # (a RigCalibration from load_rig stands for its Rig, and reconstruct_scan takes the
     # projector nonlinearity it learned)
-    data = read_scan_with_progress(scan_dir)
-    data_2 = None if second is None else read_scan_with_progress(second)
+    read = read_scan_with_progress if read is None else read
+    data = read(scan_dir)
+    data_2 = None if second is None else read(second)
     with progress_bar("reconstructing", 1) as advance:
         try:
             if data_2 is None:
@@ -99,6 +103,45 @@ def _prefetch(*modules: str):
     t = threading.Thread(target=run, name="telefringe-prefetch", daemon=True)
     t.start()
     return t
+
+
+def _read_ahead(*folders):
+    """Begin reading the scan ``folders`` on a background thread; return
+    ``read(folder) -> Scan``, which waits for that folder and raises its reading error.
+
+    The command then loads the rig (mostly numba's start-up, which holds the GIL) while
+    the images are decoded (OpenCV and zlib release it): on two cores the reading costs
+    about no time. ``read`` of a folder not given here reads it then.
+    """
+    import threading
+
+    # telefringe's own modules imported here, on this thread: the background thread
+    # imports only third-party leaves (OpenCV), nothing that the rig's loading imports
+    import telefringe.io.scan_json  # noqa: F401
+
+    results = {}
+
+    def run():
+        for folder in folders:
+            try:
+                results[folder] = (read_scan_with_progress(folder), None)
+            except BaseException as exc:  # noqa: BLE001 - raised by read() on this thread
+                results[folder] = (None, exc)
+
+    thread = threading.Thread(target=run, name="telefringe-read", daemon=True)
+    thread.start()
+
+    def read(folder):
+        if folder not in folders:
+            return read_scan_with_progress(folder)
+        thread.join()
+        data, exc = results[folder]
+        if exc is not None:
+            raise exc
+        return data
+
+    read.wait = thread.join
+    return read
 
 
 def reconstruct_cmd(
@@ -169,22 +212,29 @@ def reconstruct_cmd(
                          f"{noise_model!r}")
     # third-party leaves only, which nothing else imports meanwhile (two threads importing
     # modules that import each other could see each other's half-initialised modules)
-    _prefetch("plyfile", "tifffile", "PIL.Image", "PIL.ImageDraw")
+    _prefetch("plyfile", "tifffile", "PIL.Image", "PIL.ImageDraw", "x3pio")
     from telefringe.io.rig_json import load_rig
 
-    rig_obj = load_rig(rig)
-    extra = {"phase_errors": None} if refit_gamma else {}
-    n_cams = len(getattr(getattr(rig_obj, "rig", rig_obj), "cameras", ()))
-    if second is not None and n_cams < 2:
-        raise InputError(f"{rig}: --second needs a rig with two cameras (camera and camera_2),"
-                         " this one has one")
-    if second is None and getattr(getattr(rig_obj, "rig", rig_obj), "projector", 1) is None:
-        raise InputError(f"{rig}: the rig has no calibrated projector: give the second "
-                         "camera's scan with --second")
-    rec = reconstruct_to_folder(scan, rig_obj, output, force=force, pixel_mm=pixel_mm,
-                                max_residual=max_residual, ply=ply, gamma_correction=gamma,
-                                method=method, second=second, noise=noise_model,
-                                **({"search_mm": search_mm} if search_mm else {}), **extra)
+    read = _read_ahead(*((scan,) if second is None else (scan, second)))
+    try:  # the errors as before: the rig's, the output folder's, then the scan's
+        rig_obj = load_rig(rig)
+        n_cams = len(getattr(getattr(rig_obj, "rig", rig_obj), "cameras", ()))
+        if second is not None and n_cams < 2:
+            raise InputError(f"{rig}: --second needs a rig with two cameras (camera and "
+                             "camera_2), this one has one")
+        if second is None and getattr(getattr(rig_obj, "rig", rig_obj), "projector",
+                                      1) is None:
+            raise InputError(f"{rig}: the rig has no calibrated projector: give the second "
+                             "camera's scan with --second")
+        extra = {"phase_errors": None} if refit_gamma else {}
+        rec = reconstruct_to_folder(scan, rig_obj, output, force=force, pixel_mm=pixel_mm,
+                                    max_residual=max_residual, ply=ply,
+                                    gamma_correction=gamma, method=method, second=second,
+                                    noise=noise_model, read=read,
+                                    **({"search_mm": search_mm} if search_mm else {}),
+                                    **extra)
+    finally:
+        read.wait()  # no thread left reading, whatever happened
     c = rec.cloud
     for name, ax in (getattr(rec.coords, "axes", None) or {}).items():
         fit = getattr(ax, "phase_errors", None)
