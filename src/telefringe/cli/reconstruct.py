@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import typer
 
-from telefringe.cli._common import detail, info, progress_bar, read_scan_with_progress
+from telefringe.cli._common import (
+    detail,
+    info,
+    progress_bar,
+    read_scan_with_progress,
+    state,
+)
 
 
 def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
@@ -35,6 +42,7 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     from telefringe.io.reconstruction_folder import write_reconstruction
     from telefringe.io.reports import cloud_summary
     from telefringe.reconstruction.cloud import TriangulationError
+    from telefringe.reconstruction.heightmap import height_map
     from telefringe.reconstruction.pipeline import reconstruct_scan, reconstruct_stereo_scans
 
     output = Path(output)
@@ -45,41 +53,59 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     read = read_scan_with_progress if read is None else read
     data = read(scan_dir)
     data_2 = None if second is None else read(second)
+    where = scan_dir if data_2 is None else f"{scan_dir} + {second}"
+
+    def user_error(exc):
+        msg = str(exc)
+        for d in (data, data_2):
+            if d is not None and msg.startswith(f"{d.source}: "):
+                msg = msg[len(d.source) + 2:]
+        return InputError(f"{where}: {msg}")
+
     with progress_bar("reconstructing", 1) as advance:
+        # the height map is made while the point files are written (write_reconstruction)
         try:
             if data_2 is None:
                 rec = reconstruct_scan(data, rig, max_residual=max_residual,
-                                       pixel_mm=pixel_mm, **decode_options)
+                                       with_height_map=False, **decode_options)
             else:
                 rec = reconstruct_stereo_scans(data, data_2, rig, max_residual=max_residual,
-                                               pixel_mm=pixel_mm, **decode_options)
+                                               with_height_map=False, **decode_options)
         except (DecodeError, PhaseInputError, TriangulationError) as exc:
-            msg = str(exc)
-            for d in (data, data_2):
-                if d is not None and msg.startswith(f"{d.source}: "):
-                    msg = msg[len(d.source) + 2:]
-            where = scan_dir if data_2 is None else f"{scan_dir} + {second}"
-            raise InputError(f"{where}: {msg}") from None
+            raise user_error(exc) from None
         advance()
     if rec.cloud.count == 0:
         raise InputError(f"{scan_dir}: no valid point (is the object lit and in focus, and "
                          "does the rig belong to this scan?)")
-    summary = {"scan": str(scan_dir), **cloud_summary(rec.cloud)}
-    if getattr(rec.coords, "noise", None) is not None:
-        summary["noise_model"] = rec.coords.noise.summary()
-    if second is not None:
-        summary["second_scan"] = str(second)
-        if getattr(rec.coords_2, "noise", None) is not None:
-            summary["noise_model_second"] = rec.coords_2.noise.summary()
-    if rec.height is not None:
-        summary["heightmap"] = {"pixel_mm": rec.height.pixel_mm,
-                                "shape": list(rec.height.z.shape)}
+    made = []
+
+    def make_height_map():
+        # as reconstruct_scan's with_height_map=True
+        hm = height_map(rec.cloud, pixel_mm=pixel_mm) if rec.cloud.count >= 3 else None
+        made.append(hm)
+        return hm
+
+    def summary(hm):
+        out = {"scan": str(scan_dir), **cloud_summary(rec.cloud)}
+        if getattr(rec.coords, "noise", None) is not None:
+            out["noise_model"] = rec.coords.noise.summary()
+        if second is not None:
+            out["second_scan"] = str(second)
+            if getattr(rec.coords_2, "noise", None) is not None:
+                out["noise_model_second"] = rec.coords_2.noise.summary()
+        if hm is not None:
+            out["heightmap"] = {"pixel_mm": hm.pixel_mm, "shape": list(hm.z.shape)}
+        return out
+
     with progress_bar("writing", 1) as advance, atomic_dir(output, force=force) as tmp:
-        write_reconstruction(tmp, rec.cloud, rec.height, texture=rec.texture,
-                             radiance=rec.radiance, title=title or Path(scan_dir).name,
-                             ply=ply, summary=summary)
+        try:
+            write_reconstruction(tmp, rec.cloud, make_height_map, texture=rec.texture,
+                                 radiance=rec.radiance, title=title or Path(scan_dir).name,
+                                 ply=ply, summary=summary)
+        except TriangulationError as exc:  # the height map's (e.g. pixel_mm too small)
+            raise user_error(exc) from None
         advance()
-    return rec
+    return dataclasses.replace(rec, height=made[0])
 
 
 def _prefetch(*modules: str):
@@ -245,14 +271,20 @@ def reconstruct_cmd(
     for coords in (rec.coords, rec.coords_2):
         if getattr(coords, "noise", None) is not None:
             _report_noise(coords.noise)
+    if state.quiet:  # nothing more to print: the figures are not computed
+        return
     info(f"{c.count} points ({c.count / c.mask.size:.1%} of the pixels)")
+    import json
+
     import numpy as np
 
-    sz = c.sigma_z[c.mask]
-    if sz.size and np.all(np.isfinite(sz)):
-        info(f"sigma_z median {np.median(sz) * 1000:.2f} um, 95% below "
-             f"{np.percentile(sz, 95) * 1000:.2f} um")
-    if c.residual is not None:
+    # the same figures as summary.json's (median and 95th percentile of sigma_z over the
+    # valid points, where all are finite), read back rather than sorted again
+    summary = json.loads((Path(output) / "summary.json").read_text())
+    med, p95 = summary.get("sigma_z_median_mm"), summary.get("sigma_z_p95_mm")
+    if med is not None and p95 is not None:
+        info(f"sigma_z median {med * 1000:.2f} um, 95% below {p95 * 1000:.2f} um")
+    if c.residual is not None and state.verbose:
         r = c.residual[c.mask]
         detail(f"u/v consistency residual median {np.nanmedian(r):.3f} projector px")
     info(f"wrote {output}")
