@@ -146,6 +146,14 @@ def test_fused_decode_with_tables_matches_the_series(monkeypatch):
     m = ser.mask
     assert np.abs(ser.u_p - tab.u_p)[m].max() <= 1.24e-6 * 800 / (2 * np.pi * 64)
     assert np.abs(tab.sigma_u_p[m] / ser.sigma_u_p[m] - 1).max() <= 1.75e-6
+    # the kernel's lean pass (u_p and mask only) likewise
+    tab_fast = decode_axis_fast(stacks, (1, 8, 64), 4, length=800, phase_errors=fit)
+    monkeypatch.setattr(fast, "TABLE_MIN_TERMS", 48)
+    ser_fast = decode_axis_fast(stacks, (1, 8, 64), 4, length=800, phase_errors=fit)
+    assert np.array_equal(ser_fast.mask, tab_fast.mask) and ser_fast.mask.mean() > 0.99
+    m = ser_fast.mask
+    assert (np.abs(ser_fast.coordinate - tab_fast.coordinate)[m].max()
+            <= 1.24e-6 * 800 / (2 * np.pi * 64))
 
 
 @pytest.mark.parametrize("model", [

@@ -93,7 +93,7 @@ TABLE_MAX_SIZE = 2 ** 20
 #: float32 operations per term and pixel, vectorised; the tables two (four with the noise
 #: factor) scalar look-ups per pixel (LLVM does not gather on this machine's CPU), about
 #: the cost of a 20 to 30 term series: measured no faster in the full decode for the
-#: paper rig's learned models (27, 16 and 4 terms; benchmarks/decode.py), so the tables
+#: paper rig's learned models (27, 16 and 4 terms; benchmarks/reconstruct.py), so the tables
 #: serve only where the series cannot (48 = SERIES_MAX_TERMS: never by length)
 TABLE_MIN_TERMS = 48
 
