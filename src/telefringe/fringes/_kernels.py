@@ -72,9 +72,9 @@ def atan2_poly32_array(y, x, out):
 @nb.njit(inline="always", error_model="numpy")
 def _cell(p, tscale, top):
     """Cell index i (0..top) and float32 fraction of float32 phase p in (-pi32, pi32] on
-    the grid -pi + 2 pi j / M (tscale = M / (2 pi), top = M), in float64: p + pi > 0 (the
-    float32 p > -pi32 >= -pi - 9e-8 ... is at least -pi32 + ulp, above -pi), and p <= pi32
-    puts t at most 1.4e-8 M above M (cell M: the table's padding)."""
+    the grid -pi + 2 pi j / M (tscale = M / (2 pi), top = M), in float64. p + pi > 0: the
+    float32 above -pi32 nearest to it, -pi32 + ulp, is above -pi; p <= pi32 puts t at most
+    1.4e-8 M above M (cell M: the table's padding)."""
     t = (float(p) + math.pi) * tscale
     i = np.int64(t)  # t > 0: truncation is the floor
     i = i if i < top else top
@@ -325,9 +325,8 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                  out_sigma, out_bg, out_exp, out_sat, out_low, out_shadow, out_rel):
     """One pass over the images of a hierarchical ladder (coarse to fine, the first level
     one period), per camera pixel: each level's N-step sums, HDR choice between its
-    exposures, phase (polynomial atan2), optional nonlinearity correction (table
-    or series),
-    hierarchical unwrapping with the residual check, inverse-variance combination, masks
+    exposures, phase (polynomial atan2), optional nonlinearity correction (series or
+    table), hierarchical unwrapping with the residual check, inverse-variance combination, masks
     (saturation, low modulation, residual, range).
 
     Precision: sums exact in float32 where ``exact32`` (else float64, then rounded to
