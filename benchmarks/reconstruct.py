@@ -14,6 +14,10 @@ median of ``--runs`` runs after a warm-up:
 - megapixels (camera pixels) per second for triangulation alone and for decode +
   triangulate from images in memory: gamma correction learned from the scan, off, and
   with the rig's model (learned once, as a calibration does; here from another scan);
+- where the CPU time of decode + triangulate goes, on one thread: the fused kernel alone
+  (u_p and mask) without and with the rig's gamma model, the full ``decode()`` without
+  correction, with the model as a Fourier series (the default) and from its tables, and
+  triangulation;
 - the cold start of ``telefringe reconstruct`` for one scan (a new process, numba caches
   warm): gamma learned from the scan, off, and from a rig.json that carries the model
   (wall, CPU of the process, and wall less the main thread's wait for a CPU, which on a
@@ -238,6 +242,45 @@ def main() -> None:
         cpu_dt.append(time.process_time() - t0)
     t_cpu_dt = min(cpu_dt)
     t_hm, hm = _median_time(lambda: height_map(cloud), args.runs)
+    # where the CPU time goes: one thread, CPU time, minimum of the runs
+    from telefringe.fringes import fast as _fast
+    from telefringe.fringes.fast import decode_axis_fast
+
+    per = [int(g.periods) for g in data.manifest.groups]
+    rig_models = [learned[("u", p, 4)] for p in per]
+    length = data.manifest.axis_length("u")
+
+    def with_tables():
+        old = _fast.TABLE_MIN_TERMS
+        _fast.TABLE_MIN_TERMS = 0
+        try:
+            return decode(data, phase_errors=learned)
+        finally:
+            _fast.TABLE_MIN_TERMS = old
+
+    split = (
+        ("fused kernel, u_p + mask only, no correction",
+         lambda: decode_axis_fast(data.stacks, per, 4, length=length)),
+        ("fused kernel, u_p + mask only, rig's gamma",
+         lambda: decode_axis_fast(data.stacks, per, 4, length=length,
+                                  phase_errors=rig_models)),
+        ("decode(), gamma correction off", lambda: decode(data, gamma_correction=False)),
+        ("decode(), rig's gamma (series, the default)",
+         lambda: decode(data, phase_errors=learned)),
+        ("decode(), rig's gamma from the tables", with_tables),
+        ("triangulate", lambda: triangulate(vrig.rig, coords)),
+    )
+    numba.set_num_threads(1)
+    cpu_split = []
+    for name, fn in split:
+        fn()
+        ts = []
+        for _ in range(runs_tri):
+            t0 = time.process_time()
+            fn()
+            ts.append(time.process_time() - t0)
+        cpu_split.append((name, min(ts)))
+    numba.set_num_threads(n_thr)
 
     def write():
         with tempfile.TemporaryDirectory() as d:
@@ -272,6 +315,9 @@ def main() -> None:
     line("decode + triangulate (rig's gamma), CPU s (min)", t_cpu_dt)
     print(f"    (per CPU-second: on {n_thr} idle cores at most {n_thr * mpx / t_cpu_dt:.0f} "
           "Mpx/s)")
+    print(f"where the CPU time goes (1 thread, CPU time, min of {runs_tri}; {_load()}):")
+    for name, t in cpu_split:
+        print(f"  {name:<48s} {t * 1000:8.1f} ms  {mpx / t:8.1f} Mpx/CPU-s")
     print(f"  valid points: {cloud.count} ({cloud.count / (rows * cols):.1%}), median sigma_z "
           f"{np.nanmedian(cloud.sigma_z) * 1000:.2f} um")
 
