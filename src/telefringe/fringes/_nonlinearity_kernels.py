@@ -262,3 +262,186 @@ def stein_sums(phase, dgain, gain, weight, harmonics, out):
             ts += part_s[ch, k]
         out[2 * j] = tc
         out[2 * j + 1] = ts
+
+
+# ------------------------------------------------------------------ learning (fused passes)
+@nb.njit(cache=True, nogil=True, parallel=True)
+def invert_wrap_gain(measured, harmonics, cos_coef, sin_coef, start, unwrapped, est, gain):
+    """One group's true-phase estimates for the fit, in one pass: :func:`invert_harmonic`
+    (``start`` as there), then ``est = wrap(unwrapped)`` in [-pi, pi) (as ``np.mod(x + pi,
+    2 pi) - pi``) and ``gain = 1 / (1 + e'(est))``.
+
+    measured, start (or empty), unwrapped, est, gain : (n,) float64 (rad; gain unitless).
+    Returns False when ``1 + e' <= 0`` was met (the model is not invertible there).
+    """
+    ok = invert_harmonic(measured, harmonics, cos_coef, sin_coef, start, unwrapped)
+    d, ca, sa = _dense_coefficients(harmonics, cos_coef, sin_coef)
+    for i in nb.prange(measured.size):
+        w = (unwrapped[i] + math.pi) % TWO_PI - math.pi
+        est[i] = w
+        gain[i] = 1.0 / (1.0 + _series(w, d, ca, sa)[1])
+    return ok
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def pair_residuals(est_a, est_b, gain_a, gain_b, sig_a, sig_b, r, ka, kb, res, wt, absz):
+    """A pair's residual ``res = wrap(r phi_a - phi_b)`` (with the absolute phases
+    ``phi + 2 pi k`` when ``ka``, ``kb`` are given, else they are empty), its weight
+    ``wt = 1 / ((r sig_a gain_a)^2 + (sig_b gain_b)^2)`` (0 where that variance is not
+    finite and positive) and ``absz = |res| sqrt(wt)``.
+
+    All (n,) float64 (rad, 1/rad^2, unitless); r : float, the period ratio.
+    """
+    absolute = ka.size == est_a.size
+    for i in nb.prange(est_a.size):
+        if absolute:
+            x = r * (est_a[i] + TWO_PI * ka[i]) - (est_b[i] + TWO_PI * kb[i])
+        else:
+            x = r * est_a[i] - est_b[i]
+        x = (x + math.pi) % TWO_PI - math.pi
+        res[i] = x
+        va = r * sig_a[i] * gain_a[i]
+        vb = sig_b[i] * gain_b[i]
+        var = va * va + vb * vb
+        w = 1.0 / var if (math.isfinite(var) and var > 0.0) else 0.0
+        wt[i] = w
+        absz[i] = abs(x) * math.sqrt(w)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _powers(phase, d, kmax, c_out, s_out):
+    """c_out[k], s_out[k] = cos, sin(k d phase), k = 0..kmax (one sin/cos)."""
+    c1 = math.cos(d * phase)
+    s1 = math.sin(d * phase)
+    c = 1.0
+    s = 0.0
+    c_out[0] = 1.0
+    s_out[0] = 0.0
+    for k in range(1, kmax + 1):
+        c, s = c * c1 - s * s1, s * c1 + c * s1
+        c_out[k] = c
+        s_out[k] = s
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _damped_curv(cp, sp, d, kmax, cfix, sfix, tau2):
+    """-sum_k (k d)^2 exp(-(k d)^2 tau2 / 2) (cfix[k] cos + sfix[k] sin)(k d x), from the
+    powers of :func:`_powers` (as :func:`damped_curvature`)."""
+    q = math.exp(-0.5 * d * d * tau2)
+    damp = 1.0
+    step = q
+    acc = 0.0
+    for k in range(1, kmax + 1):
+        damp *= step
+        step *= q * q
+        mk = k * d
+        acc -= mk * mk * damp * (cfix[k] * cp[k] + sfix[k] * sp[k])
+    return acc
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def pair_rows(est_a, est_b, gain_a, gain_b, sig_a, sig_b, r, res, wk, s2,
+              harm_a, cfix_a, sfix_a, sel_a, harm_b, cfix_b, sfix_b, sel_b,
+              rows, target, stein_a, stein_b):
+    """One pair's weighted rows of an errors-in-variables Gauss-Newton step, in one pass
+    over the samples (what ``nonlinearity._gauss_newton`` does), for samples with weight
+    ``wk > 0`` (the others get zero rows):
+
+    - per group g of the pair: ``tau2 = s2 (sig_g gain_g)^2`` and the damped curvature
+      ``curv_g`` (:func:`damped_curvature` of the dense coefficients ``cfix_g``,
+      ``sfix_g`` of the harmonics whose bias is corrected, zero elsewhere);
+    - ``target = sqrt(wk) (-(res - mean_bias))`` with ``mean_bias = s2 / 2 (r sig_a^2
+      (-gain_a^3 curv_a) - sig_b^2 (-gain_b^3 curv_b))``;
+    - ``rows = sqrt(wk) [-r gain_a h_a(est_a), gain_b h_b(est_b)]`` (h: cos and sin of each
+      sorted order of ``harm_g``), so that ``rows^T rows`` and ``rows^T target`` are the
+      normal equations;
+    - Stein's sums (:func:`stein_sums`) of the orders with ``sel_g`` set, weights ``wk r^2
+      (sig_a gain_a)^2`` and ``wk (sig_b gain_b)^2``, into ``stein_a`` and ``stein_b``
+      (2 per order, interleaved cos/sin; 0 for the orders not selected).
+
+    Per-sample arrays (n,) float64; r, s2 : float; harm_g : (k_g,) int64 sorted orders;
+    cfix_g, sfix_g : (kmax_g + 1,) float64 dense coefficients on multiples of the orders'
+    divisor (rad); sel_g : (k_g,) bool; rows : (n, 2 (k_a + k_b)); target : (n,); stein_g :
+    (2 k_g,). Outputs are overwritten. The sums are taken in a fixed number of chunks
+    (deterministic whatever the thread count).
+    """
+    na = 2 * harm_a.size
+    nb_ = 2 * harm_b.size
+    npar = na + nb_
+    da = _gcd(harm_a)
+    db = _gcd(harm_b)
+    ka_max = cfix_a.size - 1
+    kb_max = cfix_b.size - 1
+    n = est_a.size
+    n_chunks = 16
+    p_sa = np.zeros((n_chunks, max(na, 1)))
+    p_sb = np.zeros((n_chunks, max(nb_, 1)))
+    for ch in nb.prange(n_chunks):
+        lo = ch * n // n_chunks
+        hi = (ch + 1) * n // n_chunks
+        acc_sa = np.zeros(max(na, 1))
+        acc_sb = np.zeros(max(nb_, 1))
+        cpa = np.empty(ka_max + 1)
+        spa = np.empty(ka_max + 1)
+        cpb = np.empty(kb_max + 1)
+        spb = np.empty(kb_max + 1)
+        for i in range(lo, hi):
+            w = wk[i]
+            if not w > 0.0:
+                for p in range(npar):
+                    rows[i, p] = 0.0
+                target[i] = 0.0
+                continue
+            root = math.sqrt(w)
+            ga = gain_a[i]
+            gb = gain_b[i]
+            _powers(est_a[i], da, ka_max, cpa, spa)
+            _powers(est_b[i], db, kb_max, cpb, spb)
+            sa2 = sig_a[i] * sig_a[i]
+            sb2 = sig_b[i] * sig_b[i]
+            curv_a = _damped_curv(cpa, spa, da, ka_max, cfix_a, sfix_a, s2 * sa2 * ga * ga)
+            curv_b = _damped_curv(cpb, spb, db, kb_max, cfix_b, sfix_b, s2 * sb2 * gb * gb)
+            mean_bias = 0.5 * s2 * (r * sa2 * -(ga * ga * ga) * curv_a
+                                    - sb2 * -(gb * gb * gb) * curv_b)
+            target[i] = -(res[i] - mean_bias) * root
+            sc_a = -r * ga * root
+            for j in range(harm_a.size):
+                k = harm_a[j] // da
+                rows[i, 2 * j] = sc_a * cpa[k]
+                rows[i, 2 * j + 1] = sc_a * spa[k]
+            sc_b = gb * root
+            for j in range(harm_b.size):
+                k = harm_b[j] // db
+                rows[i, na + 2 * j] = sc_b * cpb[k]
+                rows[i, na + 2 * j + 1] = sc_b * spb[k]
+            # Stein's lemma sums (dgain = -gain^2 curv)
+            fa = w * r * r * sa2 * ga * ga
+            wd = fa * -(ga * ga) * curv_a
+            wg = fa * ga
+            for j in range(harm_a.size):
+                if sel_a[j]:
+                    k = harm_a[j] // da
+                    mk = harm_a[j]
+                    acc_sa[2 * j] += wd * cpa[k] - wg * mk * spa[k]
+                    acc_sa[2 * j + 1] += wd * spa[k] + wg * mk * cpa[k]
+            fb = w * sb2 * gb * gb
+            wd = fb * -(gb * gb) * curv_b
+            wg = fb * gb
+            for j in range(harm_b.size):
+                if sel_b[j]:
+                    k = harm_b[j] // db
+                    mk = harm_b[j]
+                    acc_sb[2 * j] += wd * cpb[k] - wg * mk * spb[k]
+                    acc_sb[2 * j + 1] += wd * spb[k] + wg * mk * cpb[k]
+        p_sa[ch] = acc_sa
+        p_sb[ch] = acc_sb
+    for j in range(na):
+        t = 0.0
+        for ch in range(n_chunks):
+            t += p_sa[ch, j]
+        stein_a[j] = t
+    for j in range(nb_):
+        t = 0.0
+        for ch in range(n_chunks):
+            t += p_sb[ch, j]
+        stein_b[j] = t

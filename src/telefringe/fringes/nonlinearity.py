@@ -633,8 +633,9 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
     # (a start from a fit with more harmonics is already close: no subsample phase)
     stride = max(1, samp[0].size // 20_000) if start is None else 1
     if stride > 1:
-        sub = [x[::stride] for x in samp]
-        sub_pairs = [(a, b, r, *(None if v is None else np.asarray(v)[::stride]
+        sub = [np.ascontiguousarray(x[::stride]) for x in samp]
+        sub_pairs = [(a, b, r, *(None if v is None else
+                                 np.ascontiguousarray(np.asarray(v)[::stride])
                                  for v in rest)) for a, b, r, *rest in pairs]
         coef = (_initial(sub, per, harm, harm_arr, offs, sub_pairs, notes) if start is None
                 else _start_coefficients(start, harm, offs, per, notes))
@@ -701,34 +702,42 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
     unwrapped = [None] * len(per)
     for it in range(max_it):
         # true-phase estimates by Newton on the samples themselves (no table needed),
-        # each started from the previous iteration's solution
-        unwrapped = [m._invert(x, u) if m.harmonics else x
-                     for m, x, u in zip(models, samp, unwrapped, strict=True)]
-        est = [_wrap(u) for u in unwrapped]
-        gain = [1.0 / (1.0 + m.slope(e)) for m, e in zip(models, est, strict=True)]
+        # each started from the previous iteration's solution, wrapped, and their gains
+        # 1 / (1 + e'): one compiled pass per group
+        est, gain = [], []
+        for g, (m, x) in enumerate(zip(models, samp, strict=True)):
+            if m.harmonics:
+                u, e, gn = np.empty(x.size), np.empty(x.size), np.empty(x.size)
+                first = np.empty(0) if unwrapped[g] is None else unwrapped[g]
+                if not _k.invert_wrap_gain(x, harm_arr[g], m.cos_coef, m.sin_coef, first,
+                                           u, e, gn):
+                    raise ValueError("phase error model is not invertible (slope <= -1)")
+                unwrapped[g] = u
+            else:
+                unwrapped[g], e, gn = x, _wrap(x), np.ones(x.size)
+            est.append(e)
+            gain.append(gn)
         ata = np.zeros((n_par, n_par))
         atb = np.zeros(n_par)
-        num = den = chi2 = 0.0
+        num = den = 0.0
         total_keep = 0
         terms = []
         for a, b, r, sig_a, sig_b, ka, kb in pairs:
-            if ka is None:
-                res = _wrap(r * est[a] - est[b])
-            else:
-                res = _wrap(r * (est[a] + TWO_PI * ka) - (est[b] + TWO_PI * kb))
-            var = (r * sig_a * gain[a]) ** 2 + (sig_b * gain[b]) ** 2
-            with np.errstate(divide="ignore", invalid="ignore"):
-                wt = np.where(np.isfinite(var) & (var > 0), 1.0 / var, 0.0)
-            z = res * np.sqrt(wt)
+            n = est[a].size
+            res, wt, absz = np.empty(n), np.empty(n), np.empty(n)
+            _k.pair_residuals(est[a], est[b], gain[a], gain[b], sig_a, sig_b, float(r),
+                              _NONE if ka is None else ka, _NONE if kb is None else kb,
+                              res, wt, absz)
             use = wt > 0
-            scale = 1.4826 * np.median(np.abs(z[use])) if use.any() else 0.0
-            keep = (use & (np.abs(z) <= reject * max(scale, 1e-12))
+            scale = 1.4826 * float(np.median(absz[use])) if use.any() else 0.0
+            keep = (use & (absz <= reject * max(scale, 1e-12))
                     if (it or reject_first) else use)
-            num += float(np.sum(wt[keep] * res[keep] ** 2))
-            chi2 += float(np.sum(z[keep] ** 2))
-            den += float(np.sum(wt[keep]))
-            total_keep += int(keep.sum())
-            terms.append((a, b, r, sig_a, sig_b, res, np.where(keep, wt, 0.0)))
+            wk = np.where(keep, wt, 0.0)
+            num += float(np.dot(wk, res * res))
+            den += float(np.sum(wk))
+            total_keep += int(np.count_nonzero(keep))
+            terms.append((a, b, r, sig_a, sig_b, res, wk))
+        chi2 = num  # (the weighted sum of squares: z^2 = w res^2)
         rms = float(np.sqrt(num / den)) if den > 0 else 0.0
         # errors in variables (see the docstring): each group's noise variance as a true
         # phase, tau^2 (the model's sigmas times the variance scale the residuals measure),
@@ -737,24 +746,27 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         sig_g = {}
         for a, b, _, sig_a, sig_b, *_ in pairs:
             sig_g[a], sig_g[b] = sig_a, sig_b
-        tau2 = [s2 * (sig_g[g] * gain[g]) ** 2 if g in sig_g else np.zeros(1)
-                for g in range(len(per))]
-        fix = [0.5 * harm_arr[g].astype(float) ** 2 * float(np.median(tau2[g]))
+        fix = [0.5 * harm_arr[g].astype(float) ** 2
+               * (float(np.median(s2 * (sig_g[g] * gain[g]) ** 2)) if g in sig_g else 0.0)
                <= _EIV_DILUTION for g in range(len(per))]
-        curv = [_curvature(m, e, t, f) for m, e, t, f in zip(models, est, tau2, fix,
-                                                               strict=True)]
+        dense = [_fixed_dense(models[g], harm_arr[g], fix[g]) for g in range(len(per))]
         for a, b, r, sig_a, sig_b, res, wk in terms:
-            # the mean of the inversion of a noisy phase, taken out of the residual
-            mean_bias = 0.5 * s2 * (r * sig_a ** 2 * -gain[a] ** 3 * curv[a]
-                                    - sig_b ** 2 * -gain[b] ** 3 * curv[b])
-            _pair_normal_equations(est[a], est[b], -r * gain[a], gain[b], harm_arr[a],
-                                   harm_arr[b], int(offs[a]), int(offs[b]),
-                                   -(res - mean_bias), wk, ata, atb)
-            # Stein's lemma: E[J^T res] = -tau^2 E[F'] per sample, taken out of J^T res
-            for g, fac in ((a, r * r * (sig_a * gain[a]) ** 2), (b, (sig_b * gain[b]) ** 2)):
-                if harm_arr[g].size:
-                    atb[offs[g]:offs[g + 1]] -= s2 * _stein_sum(
-                        models[g], est[g], gain[g], curv[g], wk * fac, fix[g])
+            # one compiled pass: the damped curvatures, the mean of the inversion of a
+            # noisy phase taken out of the residual, the normal equations and Stein's
+            # sums (E[J^T res] = -tau^2 E[F'] per sample, taken out of J^T res)
+            na, nb_ = 2 * harm_arr[a].size, 2 * harm_arr[b].size
+            rows, target = np.empty((res.size, na + nb_)), np.empty(res.size)
+            st_a, st_b = np.empty(na), np.empty(nb_)
+            _k.pair_rows(est[a], est[b], gain[a], gain[b], sig_a, sig_b, float(r), res, wk,
+                         float(s2), harm_arr[a], *dense[a], harm_arr[b], *dense[b], rows,
+                         target, st_a, st_b)
+            loc = rows.T @ rows
+            locb = rows.T @ target
+            index = np.concatenate([offs[a] + np.arange(na), offs[b] + np.arange(nb_)])
+            ata[np.ix_(index, index)] += loc
+            atb[index] += locb
+            atb[offs[a]:offs[a + 1]] -= s2 * st_a
+            atb[offs[b]:offs[b + 1]] -= s2 * st_b
         if it == max_it - 1:
             break
         # a tiny ridge keeps poorly covered harmonics (partial phase coverage) bounded
@@ -779,6 +791,28 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         if np.max(np.abs(step)) < tol or np.all(np.abs(step) <= 0.01 * se):
             break
     return coef, rms, total_keep, ata, chi2
+
+
+#: an empty array: no absolute phases (kernels take arrays, not None)
+_NONE = np.empty(0)
+
+
+def _fixed_dense(model, harm, fix):
+    """The model's coefficients of the harmonics selected by ``fix`` (bool per order of
+    ``harm``) on the dense axis of multiples of the orders' divisor (zeros elsewhere), as
+    :func:`telefringe.fringes._nonlinearity_kernels.pair_normal_equations` takes them:
+    (cos, sin, fix) with cos, sin (max(harm) / d + 1,) float64."""
+    harm = np.asarray(harm, dtype=np.int64)
+    fix = np.ascontiguousarray(np.broadcast_to(np.asarray(fix, dtype=bool), harm.shape))
+    d = int(np.gcd.reduce(harm)) if harm.size else 1
+    d = max(d, 1)
+    cos = np.zeros(int(harm.max()) // d + 1 if harm.size else 1)
+    sin = np.zeros(cos.size)
+    for j, m in enumerate(harm):
+        if fix[j]:
+            cos[m // d] += model.cos_coef[j]
+            sin[m // d] += model.sin_coef[j]
+    return cos, sin, fix
 
 
 def _curvature(model, x, tau2, fix):
