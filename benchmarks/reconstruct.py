@@ -14,9 +14,17 @@ median of ``--runs`` runs after a warm-up:
 - megapixels (camera pixels) per second for triangulation alone and for decode +
   triangulate from images in memory: gamma correction learned from the scan, off, and
   with the rig's model (learned once, as a calibration does; here from another scan);
+- where the CPU time of decode + triangulate goes, on one thread: the fused kernel alone
+  (u_p and mask) without and with the rig's gamma model, the full ``decode()`` without
+  correction, with the model as a Fourier series (the default) and from its tables, and
+  triangulation;
 - the cold start of ``telefringe reconstruct`` for one scan (a new process, numba caches
-  warm): gamma learned from the scan, off, and from a rig.json that carries the model;
-  and its split by stage.
+  warm): gamma learned from the scan, off, and from a rig.json that carries the model
+  (wall, CPU of the process, and wall less the main thread's wait for a CPU, which on a
+  shared machine approximates an idle one); and its split by stage, one after the other
+  (the command overlaps some: it reads the images while the rig and numba load, and
+  makes the height map and writes the X3P and PNG while it writes points.npz and the
+  PLY).
 
 What bounds each figure:
 
@@ -29,9 +37,10 @@ What bounds each figure:
 - decode + triangulate: decoding (telefringe.fringes.decode: wrapped phase, unwrapping and, by
   default, fitting and removing the projector's gamma from the fringes); triangulation is
   a few percent of it.
-- cold start: Python + numpy + typer/rich imports, numba's start-up and the loading of the
-  cached kernels, reading the PNGs, decoding, and drawing heightmap.png (Pillow); see the
-  split.
+- cold start: Python + numpy + typer/rich imports, numba's start-up (importing numba, which
+  imports scipy.linalg, and initialising its compiler context: ~0.6 s CPU before the first
+  cached kernel loads; each of the ~7 kernels on the path then loads in ~0.02-0.05 s),
+  decoding, triangulating and the outputs; see the split.
 """
 
 from __future__ import annotations
@@ -92,6 +101,7 @@ from telefringe.io.figures.heightmap_png import write_height_png
 from telefringe.io.ply import write_ply
 from telefringe.io.points_npz import write_points
 from telefringe.io.tiff import write_height_tiff
+from telefringe.io.x3p import write_height_x3p
 mark("imports (cli, rig.json reader, decode, reconstruct)")
 from telefringe.geometry._distortion_kernels import undistort_point
 undistort_point(0.0, 0.0, 0.0, 0.0, 0.0)
@@ -117,6 +127,8 @@ write_ply(out + "/cloud.ply", cloud)
 mark("write cloud.ply")
 write_height_tiff(out + "/heightmap.tif", hm)
 mark("write heightmap.tif")
+write_height_x3p(out + "/heightmap.x3p", hm)
+mark("write heightmap.x3p")
 import PIL.Image, PIL.ImageDraw
 mark("import Pillow")
 write_height_png(out + "/heightmap.png", _preview(hm))
@@ -127,6 +139,23 @@ for name, t, c in marks:
     print(f"    {name:<44s} {t - prev:6.2f} {c - cprev:6.2f} s")
     prev, cprev = t, c
 print(f"    {'total (after the interpreter started)':<44s} {prev - t0:6.2f} {cprev - c0:6.2f} s")
+"""
+
+
+# 'telefringe reconstruct' in a new process as the command line runs it, which then writes
+# to argv[1] its CPU time and its main thread's time spent waiting for a CPU (Linux)
+_COLD = r"""
+import sys, time
+from telefringe.cli import main
+rc = main(sys.argv[2:])
+try:
+    with open("/proc/thread-self/schedstat") as f:
+        wait = int(f.read().split()[1]) / 1e9
+except OSError:
+    wait = float("nan")
+with open(sys.argv[1], "w") as f:
+    f.write(f"{time.process_time()} {wait}")
+sys.exit(rc)
 """
 
 
@@ -213,6 +242,45 @@ def main() -> None:
         cpu_dt.append(time.process_time() - t0)
     t_cpu_dt = min(cpu_dt)
     t_hm, hm = _median_time(lambda: height_map(cloud), args.runs)
+    # where the CPU time goes: one thread, CPU time, minimum of the runs
+    from telefringe.fringes import fast as _fast
+    from telefringe.fringes.fast import decode_axis_fast
+
+    per = [int(g.periods) for g in data.manifest.groups]
+    rig_models = [learned[("u", p, 4)] for p in per]
+    length = data.manifest.axis_length("u")
+
+    def with_tables():
+        old = _fast.TABLE_MIN_TERMS
+        _fast.TABLE_MIN_TERMS = 0
+        try:
+            return decode(data, phase_errors=learned)
+        finally:
+            _fast.TABLE_MIN_TERMS = old
+
+    split = (
+        ("fused kernel, u_p + mask only, no correction",
+         lambda: decode_axis_fast(data.stacks, per, 4, length=length)),
+        ("fused kernel, u_p + mask only, rig's gamma",
+         lambda: decode_axis_fast(data.stacks, per, 4, length=length,
+                                  phase_errors=rig_models)),
+        ("decode(), gamma correction off", lambda: decode(data, gamma_correction=False)),
+        ("decode(), rig's gamma (series, the default)",
+         lambda: decode(data, phase_errors=learned)),
+        ("decode(), rig's gamma from the tables", with_tables),
+        ("triangulate", lambda: triangulate(vrig.rig, coords)),
+    )
+    numba.set_num_threads(1)
+    cpu_split = []
+    for name, fn in split:
+        fn()
+        ts = []
+        for _ in range(runs_tri):
+            t0 = time.process_time()
+            fn()
+            ts.append(time.process_time() - t0)
+        cpu_split.append((name, min(ts)))
+    numba.set_num_threads(n_thr)
 
     def write():
         with tempfile.TemporaryDirectory() as d:
@@ -247,6 +315,9 @@ def main() -> None:
     line("decode + triangulate (rig's gamma), CPU s (min)", t_cpu_dt)
     print(f"    (per CPU-second: on {n_thr} idle cores at most {n_thr * mpx / t_cpu_dt:.0f} "
           "Mpx/s)")
+    print(f"where the CPU time goes (1 thread, CPU time, min of {runs_tri}; {_load()}):")
+    for name, t in cpu_split:
+        print(f"  {name:<48s} {t * 1000:8.1f} ms  {mpx / t:8.1f} Mpx/CPU-s")
     print(f"  valid points: {cloud.count} ({cloud.count / (rows * cols):.1%}), median sigma_z "
           f"{np.nanmedian(cloud.sigma_z) * 1000:.2f} um")
 
@@ -258,7 +329,8 @@ def main() -> None:
             imp.append(time.perf_counter() - t0)
         print(f"cold start ({_load()}), median of 3:")
         print(f"  python -c 'import telefringe.cli': {statistics.median(imp):.2f} s")
-        exe = [sys.executable, "-m", "telefringe.cli"]
+        stats = root / "cold_stats.txt"
+        exe = [sys.executable, "-c", _COLD, str(stats)]
         cmd = exe + ["-q", "reconstruct", str(folder), "--rig", str(root / "rig.json"),
                      "-o", str(root / "out"), "--force"]
         rig_gamma = [cmd[:cmd.index("--rig") + 1] + [str(root / "rig_gamma.json")]
@@ -266,7 +338,7 @@ def main() -> None:
         for label, full in (("", cmd), (" --no-gamma-correction",
                                         cmd + ["--no-gamma-correction"]),
                             (" (rig.json with the gamma model)", rig_gamma[0])):
-            ts, cs = [], []
+            ts, cs, qs = [], [], []
             for _ in range(3):
                 r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 t0 = time.perf_counter()
@@ -274,10 +346,14 @@ def main() -> None:
                 ts.append(time.perf_counter() - t0)
                 r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 cs.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
-            # CPU time of the process (all its threads): what other jobs inflate least
+                qs.append(ts[-1] - float(stats.read_text().split()[1]))
+            # CPU time of the process (all its threads): what other jobs inflate least;
+            # wall minus the time the main thread waited for a CPU: roughly what an idle
+            # machine would take (the other threads' waits still count)
             print(f"  telefringe reconstruct{label} (all outputs): "
                   f"{statistics.median(ts):.2f} s (runs: {', '.join(f'{t:.2f}' for t in ts)})"
-                  f"; CPU {min(cs):.2f} s (min)")
+                  f"; CPU {min(cs):.2f} s (min); wall - main thread's run-queue wait "
+                  f"{min(qs):.2f} s (min)")
         for mode, rig_json in (("off", "rig.json"), ("fit", "rig.json"),
                                ("rig", "rig_gamma.json")):
             print(f"  split (gamma: {mode}, one run, {_load()}):")

@@ -57,21 +57,103 @@ def test_polynomial_atan2_error_below_1e_6_rad_float32_exact_inputs():
     assert _wrapped_diff(out, ref).max() <= 1e-6
 
 
-def test_float32_table_correction_matches_exact_interpolation():
-    model = PhaseErrorModel(64, (2, 3, 4), np.array([0.02, -0.004, 0.001]),
-                            np.array([-0.03, 0.006, -0.002]))
-    g, err = model.correction_table(4096)
-    assert err <= 1e-6
+_TABLE_MODELS = [
+    PhaseErrorModel(64, (2, 3, 4), np.array([0.02, -0.004, 0.001]),
+                    np.array([-0.03, 0.006, -0.002])),
+    PhaseErrorModel(8, (3, 6, 9), np.array([0.05, -0.01, 0.003]),
+                    np.array([-0.12, 0.02, -0.004])),
+    PhaseErrorModel(1, (4, 8, 12, 16, 20, 24),
+                    np.array([-2.6e-5, -3.0e-5, -8.0e-5, -4.9e-5, -3.4e-5, -5.1e-5]),
+                    np.array([-0.0111, -0.00075, -0.00051, -0.00030, 0.00077, 0.00088]))]
+
+
+@pytest.mark.parametrize("model", _TABLE_MODELS, ids=["2-3-4", "3-6-9 strong", "learned 1"])
+def test_table_size_bounds_the_interpolation_error(model):
+    """The tables' size M comes from h^2 / 8 max|f''| (f = g, and 1 - g' for the noise
+    factor), max|g^(m)| bounded by the Fourier amplitudes: the bound holds (the float64
+    interpolation of the table's exact values, checked at every cell's mid-point and
+    quarter points against the exact inverse, is within TABLE_TOL and TABLE_NF_TOL), and M
+    is the smallest power of two that the bound allows."""
+    from telefringe.fringes import fast
+
+    bounds = fast._derivative_bounds(model)
+    n = fast._table_size(bounds)
+    assert n == fast._table_size(bounds, n)  # (n_min at or below it changes nothing)
+    c = lambda m: (2 * np.pi / m) ** 2 / 8  # noqa: E731
+    g1, g2, g3 = bounds
+    assert c(n) * g2 <= fast.TABLE_TOL and c(n) * g3 <= fast.TABLE_NF_TOL * (1 - g1)
+    if n > fast.TABLE_MIN_SIZE:
+        assert c(n // 2) * g2 > fast.TABLE_TOL or c(n // 2) * g3 > fast.TABLE_NF_TOL * (1 - g1)
+    grid = -np.pi + 2 * np.pi * np.arange(n + 1) / n
+    phi = model._invert(grid)
+    g, nf = grid - phi, 1.0 / (1.0 + model.slope(phi))
+    for frac in (0.25, 0.5, 0.75):
+        x = grid[:-1] + frac * (2 * np.pi / n)
+        phx = model._invert(x)
+        gi = g[:-1] + frac * np.diff(g)
+        ni = nf[:-1] + frac * np.diff(nf)
+        assert np.abs(gi - (x - phx)).max() <= fast.TABLE_TOL
+        exact_nf = 1.0 / (1.0 + model.slope(phx))
+        assert np.abs(ni / exact_nf - 1).max() <= fast.TABLE_NF_TOL
+
+
+@pytest.mark.parametrize("model", _TABLE_MODELS, ids=["2-3-4", "3-6-9 strong", "learned 1"])
+def test_float32_table_correction_matches_the_exact_inverse(model):
+    """The fused kernel's float32 table look-up (cell and fraction in float64, values and
+    interpolation in float32) against the exact inverse (Newton, float64), over the whole
+    circle and at its ends: the corrected phase within TABLE_TOL (interpolation) + half
+    an ulp of pi in float32 (1.2e-7: the phase is float32) + |2 pi32 - 2 pi| = 1.75e-7
+    (where the result wraps, by the float32 2 pi, as the series' does) + 4e-8 (the
+    table's float32 values and arithmetic, |g| <= 0.13: a few ulp of 0.13);
+    the noise factor within TABLE_NF_TOL + 2.5e-7 (float32 values and arithmetic: 4 ulp
+    of 1 at most)."""
+    from telefringe.fringes import fast
+
+    g32, nf32, _ = fast._model_tables(model, 1)
     ph = np.linspace(-np.pi, np.pi, 1_000_001).astype(np.float32)
-    ph = np.concatenate([ph, np.float32([np.pi, -np.pi + 1e-7])])
+    ph = ph[(ph > -np.float32(np.pi))]  # (-pi32, pi32], as atan2_poly32 returns
+    ph = np.concatenate([ph, np.float32([np.pi, np.nextafter(-np.float32(np.pi),
+                                                             np.float32(0))])])
     out = np.empty_like(ph)
-    _k.table_correct32_array(ph, g.astype(np.float32), out)
-    # exact linear interpolation of the same (float64) table, periodic, at the same phases
-    grid = -np.pi + 2 * np.pi * np.arange(g.size + 1) / g.size
-    ref = ph.astype(float) - np.interp(ph.astype(float), grid, np.append(g, g[0]))
-    # float32: phase rounding (1.2e-7), table values, index fraction: measured 2.5e-7
-    assert _wrapped_diff(out, ref).max() <= 1e-6
-    assert np.all((out > -np.pi) & (out <= np.float32(np.pi)))
+    fac = np.empty_like(ph)
+    _k.table_correct32_array(ph, g32, nf32, out, fac)
+    true = model._invert(ph.astype(float))
+    tol_g = (fast.TABLE_TOL + 0.5 * np.spacing(np.float32(np.pi))
+             + abs(2 * float(np.float32(np.pi)) - 2 * np.pi) + 4e-8)
+    assert _wrapped_diff(out, true).max() <= tol_g
+    assert np.all((out > -np.float32(np.pi)) & (out <= np.float32(np.pi)))
+    exact = 1.0 / (1.0 + model.slope(true))
+    assert np.abs(fac / exact - 1.0).max() <= fast.TABLE_NF_TOL + 2.5e-7
+    assert np.abs(exact - 1.0).max() > 1e-3  # (not trivially 1)
+
+
+def test_fused_decode_with_tables_matches_the_series(monkeypatch):
+    """The fused decode with every level's correction from the tables against the
+    default (series for these models): u_p within (1e-6 rad series + 2.4e-7 rad table,
+    each level) * L / (2 pi p_fine) = 2.7e-6 px (L = 800, p = 64); sigma_u_p within
+    1e-6 + 7.5e-7 relative (the two noise factors' bounds); masks equal."""
+    from telefringe.fringes import fast
+
+    x, stacks = _scan_stacks(gamma=2.2, rows=48, cols=160)
+    fit = decode(_scan(stacks)).axes["u"].phase_errors
+    assert all(m.harmonics for m in fit.models)
+    rig = {("u", m.periods, 4): m for m in fit.models}
+    ser = decode(_scan(stacks), phase_errors=rig)
+    assert max(len(fast._model_series(m)[0]) for m in fit.models) > 4
+    monkeypatch.setattr(fast, "TABLE_MIN_TERMS", 0)
+    tab = decode(_scan(stacks), phase_errors=rig)
+    assert np.array_equal(ser.mask, tab.mask) and ser.mask.mean() > 0.99
+    m = ser.mask
+    assert np.abs(ser.u_p - tab.u_p)[m].max() <= 1.24e-6 * 800 / (2 * np.pi * 64)
+    assert np.abs(tab.sigma_u_p[m] / ser.sigma_u_p[m] - 1).max() <= 1.75e-6
+    # the kernel's lean pass (u_p and mask only) likewise
+    tab_fast = decode_axis_fast(stacks, (1, 8, 64), 4, length=800, phase_errors=fit)
+    monkeypatch.setattr(fast, "TABLE_MIN_TERMS", 48)
+    ser_fast = decode_axis_fast(stacks, (1, 8, 64), 4, length=800, phase_errors=fit)
+    assert np.array_equal(ser_fast.mask, tab_fast.mask) and ser_fast.mask.mean() > 0.99
+    m = ser_fast.mask
+    assert (np.abs(ser_fast.coordinate - tab_fast.coordinate)[m].max()
+            <= 1.24e-6 * 800 / (2 * np.pi * 64))
 
 
 @pytest.mark.parametrize("model", [
@@ -143,7 +225,9 @@ def test_series_noise_factor_falls_back_to_the_table_when_inexact(monkeypatch):
 
     model = PhaseErrorModel(8, (3, 6, 9), np.array([0.05, -0.01, 0.003]),
                             np.array([-0.12, 0.02, -0.004]))
-    g, nf, ser = fast._model_tables(model, 1)
+    ser = fast._model_series(model)
+    grid = -np.pi + 2 * np.pi * np.arange(4096) / 4096
+    nf = 1.0 / (1.0 + model.slope(model._invert(grid)))
     assert fast._series_noise_ok(ser, nf)
     assert not fast._series_noise_ok(ser, nf * (1 + 2 * fast.NF_SERIES_TOL))
 

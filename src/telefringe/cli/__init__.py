@@ -54,6 +54,86 @@ def _flags_show_no_type() -> None:
     option.display_type_rich = display_type_rich
 
 
+def _plain_coercion() -> None:
+    """Typer (>= 0.2x) converts every option's text through a Pydantic TypeAdapter:
+    importing Pydantic and building the adapters took ~0.12 s CPU of each command's start
+    (a third of what ``telefringe reconstruct`` spends before it reads its files). Options
+    of exactly ``str``, ``int``, ``float`` or ``Path`` without constraints, given plain
+    text (a decimal number, a non-empty path) or absent (their default), and absent
+    ``bool`` ones, are converted here to the same values; anything else (bounds, choices,
+    files, lists, other types and texts) goes through typer's own coercion, with its
+    messages. A no-op where typer differs."""
+    import re
+
+    core = getattr(typer, "core", None)
+    param_cls = getattr(core, "_TyperParameter", None)
+    coercion = sys.modules.get("typer._coercion")
+    param_types = sys.modules.get("typer._param_types")
+    base = getattr(coercion, "RuntimeParam", None)
+    build = getattr(coercion, "build_runtime_param", None)
+    coerce_path = getattr(param_types, "coerce_cli_path", None)
+    original = getattr(param_cls, "get_runtime_param", None)
+    if None in (base, build, coerce_path, original) or getattr(original, "_telefringe",
+                                                                    False):
+        return
+    from dataclasses import dataclass
+    from pathlib import Path
+
+    number = {int: re.compile(r"-?(?:0|[1-9][0-9]*)"),
+              float: re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][-+]?[0-9]+)?")}
+    path_defaults = {"exists": False, "resolve_path": False, "allow_dash": False,
+                     "path_type": None}
+
+    def plain(annotation, info):
+        """'str', 'int', 'float', 'path' or None: the kinds converted here."""
+        if getattr(info, "parser", None) is not None or getattr(info, "click_type", None):
+            return None
+        if annotation in (str, bool):  # (a bool only when absent: None stays None)
+            return annotation.__name__
+        if annotation in number and all(getattr(info, k, None) in (None, False)
+                                        for k in ("min", "max", "clamp")):
+            return annotation.__name__
+        if annotation is Path and all(getattr(info, k, None) == v
+                                      for k, v in path_defaults.items()):
+            return "path"
+        return None
+
+    @dataclass(frozen=True)
+    class PlainRuntimeParam(base):
+        kind: str = "str"
+
+        def _coerce_value(self, value, param, ctx):
+            if isinstance(value, str):
+                if self.kind == "str":
+                    return value
+                if self.kind in ("int", "float"):
+                    cls = int if self.kind == "int" else float
+                    if number[cls].fullmatch(value):
+                        return cls(value)
+                elif self.kind == "path" and value:
+                    # as typer's path coercion of a Path (its checks, resolve_path, ...)
+                    return coerce_path(Path(value), self.parameter_info, path_type=Path,
+                                       param=param, ctx=ctx)
+            elif self.kind in ("int", "float") and type(value).__name__ == self.kind:
+                return value  # a default
+            return build(param.type_descriptor)._coerce_value(value, param=param, ctx=ctx)
+
+    def get_runtime_param(self):
+        if self._runtime_param is None:
+            desc = getattr(self, "type_descriptor", None)
+            kind = (None if desc is None or getattr(desc, "file_annotation", None) is not None
+                    or self.multiple or self.nargs != 1
+                    else plain(desc.annotation, desc.parameter_info))
+            if kind is None:
+                return original(self)
+            self._runtime_param = PlainRuntimeParam(parameter_info=desc.parameter_info,
+                                                    annotation=desc.annotation, kind=kind)
+        return self._runtime_param
+
+    get_runtime_param._telefringe = True
+    param_cls.get_runtime_param = get_runtime_param
+
+
 def _register_all():
     from telefringe.cli import (
         accept,
@@ -90,6 +170,7 @@ def _register_all():
 
 
 _flags_show_no_type()
+_plain_coercion()
 _register_all()
 
 

@@ -199,12 +199,19 @@ def sphere_cmd(
                                      help="Height above the base plane (mm) from which a "
                                           "point belongs to the sphere (default: automatic)."),
     rig: Path = typer.Option(None, "--rig", help=_RIG_HELP),
+    second: Path = typer.Option(None, "--second",
+                                help="A two-camera rig: the second camera's scan folder "
+                                     "(default: the one the reconstruction's summary.json "
+                                     "names, as 'reconstruct --second' wrote it); its "
+                                     "brightness enters the point-spread model and its "
+                                     "decoded phase the calibration's uncertainty."),
     json_path: Path = typer.Option(None, "--json", help=_JSON_HELP),
     force: bool = typer.Option(False, "--force", help="Replace existing output files."),
 ):
     """Sphere standing on a plane: radius, centre and form error (algebraic start,
     geometric least squares, robust); with --rig, u and U (k = 2) of radius and centre
-    including the calibration's.
+    including the calibration's, and the sphere fitted through the cameras' point-spread
+    model (one camera + projector, or two cameras with the second's scan).
 
     Example: telefringe measure sphere sphere_3d --rig rig.json --json sphere.json
     """
@@ -218,26 +225,52 @@ def sphere_cmd(
 
     pf = load_points(out)
     cloud = pf.cloud
-    spread = _sphere_spread_options(out, cal, pf)
+    two = cal is not None and len(cal.rig.cameras) == 2
+    if second is not None and not two:
+        from telefringe.io.errors import InputError
+
+        raise InputError(f"--second needs --rig with two cameras"
+                         f"{'' if rig is None else f' ({rig} has one)'}")
+    scan_2 = _second_scan(out, second) if two else None
+    spread = _sphere_spread_options(out, cal, pf, scan_2)
     try:
         sm = measure_sphere(cloud, min_height=min_height, **spread)
     except _metrology_errors() as exc:
         _fail(out, exc)
-    sm = _with_calibration(out, sphere_uncertainty, sm, cloud, cal)
+    ucal = cal
+    if two:
+        ucal = None if scan_2 is None else _stereo_calibration(out, cal, scan_2)
+        if ucal is None:
+            info("[yellow]note:[/yellow] u and U hold the noise only: the calibration's part "
+                 "of a two-camera rig needs the second camera's scan (--second)")
+    if not two or ucal is not None:
+        sm = _with_calibration(out, sphere_uncertainty, sm, cloud, ucal)
     if sm.spread is not None:
         sp = sm.spread
-        info(f"fitted through the camera's point-spread model: variance "
-             f"{sp.variance_px2:.3f} px^2"
-             + (f" +- {sp.sigma_variance_px2:.3f} (estimated with the sphere)"
-                if sp.estimated else " (given)")
-             + f", points facing the camera within {sp.max_view_deg:g} deg")
-        if sp.estimated and sp.variance_px2 < -3.0 * sp.sigma_variance_px2:
+        if sp.cameras == 2 and not sp.shared:
+            var = (f"variances {sp.variance_px2:.3f} and {sp.variance_2_px2:.3f} px^2 (first "
+                   f"and second camera)"
+                   + (f" +- {sp.sigma_variance_px2:.3f} and {sp.sigma_variance_2_px2:.3f} "
+                      "(estimated with the sphere)" if sp.estimated else " (given)"))
+        else:
+            var = (f"variance {sp.variance_px2:.3f} px^2"
+                   + (" (one for both cameras)" if sp.cameras == 2 else "")
+                   + (f" +- {sp.sigma_variance_px2:.3f} (estimated with the sphere)"
+                      if sp.estimated else " (given)"))
+        info(f"fitted through the camera{'s' if sp.cameras == 2 else ''}' point-spread model"
+             f": {var}, points facing the camera{'s' if sp.cameras == 2 else ''} within "
+             f"{sp.max_view_deg:g} deg")
+        low = [v for v, e in ((sp.variance_px2, sp.sigma_variance_px2),
+                              (sp.variance_2_px2, sp.sigma_variance_2_px2))
+               if v is not None and e is not None and v < -3.0 * e]
+        if sp.estimated and low:
             info("[yellow]warning:[/yellow] the point-spread variance came out negative "
                  "beyond 3 sigma: the model does not describe this sphere (not matte, not "
                  "lit by the projector alone?); compare with a fit without --rig")
     elif cal is not None:
         info("[yellow]note:[/yellow] fitted without the point-spread model (it needs a "
-             "camera + projector rig, the same image size and the radiance in points.npz): "
+             "camera + projector rig, or two cameras, the projector and the second "
+             "camera's scan; the same image size and the radiance in points.npz): "
              "a blurring camera biases radius and centre by about s^2 / R")
     f, base = sm.sphere, sm.base
     if base is None:
@@ -253,32 +286,97 @@ def sphere_cmd(
                                          uncertainty=sm.uncertainty, spread=sm.spread), force)
 
 
-def _sphere_spread_options(out: Path, cal, pf) -> dict:
-    """measure_sphere's point-spread options from the rig, the folder's radiance and the
-    fringe periods of the scan its summary.json names (when still readable); {} where
-    the model cannot be used."""
+def _summary_scan(out: Path, key: str):
+    """The scan folder the reconstruction's summary.json names under ``key`` (relative
+    to the working directory, else to the folder), or None."""
+    import json
+
+    try:
+        doc = json.loads((Path(out) / "summary.json").read_text())
+        scan_dir = Path(doc[key])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if not scan_dir.is_absolute() and not scan_dir.exists():
+        scan_dir = Path(out) / scan_dir
+    return scan_dir
+
+
+def _second_scan(out: Path, second: Path | None):
+    """The second camera's Scan: ``--second``, else the summary's ``second_scan`` when
+    still readable (None then). A given folder that cannot be read raises InputError."""
+    from telefringe.io.errors import InputError
+    from telefringe.io.scan_json import read_scan
+
+    folder = second if second is not None else _summary_scan(out, "second_scan")
+    if folder is None:
+        return None
+    try:
+        return read_scan(folder)
+    except (OSError, ValueError) as exc:
+        if second is not None:
+            raise InputError(f"{second}: {exc}") from None
+        info(f"[yellow]note:[/yellow] the second camera's scan {folder} named in "
+             f"{Path(out) / 'summary.json'} cannot be read ({exc}): give --second")
+        return None
+
+
+def _stereo_calibration(out: Path, cal, scan_2):
+    """The two-camera calibration for the uncertainty of a matched cloud (the second
+    scan decoded as 'reconstruct --second' decodes it)."""
+    from telefringe.fringes.decode import DecodeError, decode
+    from telefringe.metrology.uncertainty import for_stereo
+
+    opts = {"noise": "auto"}
+    if getattr(cal, "phase_errors", None):
+        opts["phase_errors"] = cal.phase_errors
+    try:
+        coords_2 = decode(scan_2, **opts)
+        return for_stereo(cal, coords_2)
+    except (DecodeError, ValueError) as exc:
+        _fail(out, f"the second camera's scan: {exc}")
+
+
+def _sphere_spread_options(out: Path, cal, pf, scan_2=None) -> dict:
+    """measure_sphere's point-spread options from the rig, the folder's radiance (and,
+    two cameras, the second camera's scan's) and the fringe periods of the scan its
+    summary.json names (when still readable); {} where the model cannot be used."""
     if cal is None or pf.radiance is None:
         return {}
     rig = cal.rig
     size = rig.camera.image_size
-    if (rig.projector is None or len(rig.cameras) != 1
+    n_cams = len(rig.cameras)
+    if (rig.projector is None or n_cams not in (1, 2) or (n_cams == 2 and scan_2 is None)
             or (size is not None and tuple(size) != (pf.cloud.shape[1], pf.cloud.shape[0]))):
         return {}
+    from telefringe.metrology.spheres import finest_fringe_periods
+
     periods = None
     try:
-        import json
-
         from telefringe.io.scan_json import load_scan_manifest
-        from telefringe.metrology.spheres import finest_fringe_periods
 
-        doc = json.loads((Path(out) / "summary.json").read_text())
-        scan_dir = Path(doc["scan"])
-        if not scan_dir.is_absolute():
-            scan_dir = Path(out) / scan_dir if not scan_dir.exists() else scan_dir
-        periods = finest_fringe_periods(load_scan_manifest(scan_dir))
+        scan_dir = _summary_scan(out, "scan")
+        if scan_dir is not None:
+            periods = finest_fringe_periods(load_scan_manifest(scan_dir))
     except (OSError, ValueError, KeyError, TypeError):  # they refine the second order only
         periods = None
-    return {"rig": rig, "image": pf.radiance, "fringe_periods": periods}
+    opts = {"rig": rig, "image": pf.radiance, "fringe_periods": periods}
+    if n_cams == 2:
+        from telefringe.fringes.images import scan_radiance
+
+        size_2 = rig.cameras[rig.camera_names[1]].image_size
+        try:
+            image_2 = scan_radiance(scan_2)
+        except ValueError:  # no phase images
+            return {}
+        if size_2 is not None and image_2.shape != (size_2[1], size_2[0]):
+            _fail(out, f"the second camera's scan is {image_2.shape[1]} x "
+                       f"{image_2.shape[0]} px, the rig's second camera {size_2[0]} x "
+                       f"{size_2[1]}")
+        opts["image_2"] = image_2
+        if periods is None:
+            periods = finest_fringe_periods(scan_2.manifest)
+            opts["fringe_periods"] = periods
+    return opts
 
 
 def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,

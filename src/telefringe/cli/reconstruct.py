@@ -2,17 +2,24 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import typer
 
-from telefringe.cli._common import detail, info, progress_bar, read_scan_with_progress
+from telefringe.cli._common import (
+    detail,
+    info,
+    progress_bar,
+    read_scan_with_progress,
+    state,
+)
 
 
 def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
                           pixel_mm: float | None = None, max_residual: float | None = 1.0,
                           ply: bool = True, title: str | None = None, second=None,
-                          **decode_options):
+                          read=None, **decode_options):
     """Read a scan folder, reconstruct it with ``rig`` (a Rig, or a RigCalibration whose
     projector nonlinearity is then used) and write ``output``. With ``second`` (the scan
     folder of the rig's second camera), match the two cameras' phases instead (stereo).
@@ -20,6 +27,9 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     Writes atomically (the folder appears complete or not at all): ``points.npz``,
     ``cloud.ply``, ``heightmap.tif`` + ``heightmap.json`` (+ ``heightmap_sigma.tif``),
     ``heightmap.png`` and ``summary.json``. User problems raise ``InputError``.
+    ``read(folder) -> Scan`` reads each scan folder (default
+    :func:`telefringe.cli._common.read_scan_with_progress`; the command passes scans
+    it began reading beforehand).
 
     Returns
     -------
@@ -32,6 +42,7 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     from telefringe.io.reconstruction_folder import write_reconstruction
     from telefringe.io.reports import cloud_summary
     from telefringe.reconstruction.cloud import TriangulationError
+    from telefringe.reconstruction.heightmap import height_map
     from telefringe.reconstruction.pipeline import reconstruct_scan, reconstruct_stereo_scans
 
     output = Path(output)
@@ -39,43 +50,62 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     # the scan's projector and camera sizes are checked against the rig by reconstruct_scan
     # (a RigCalibration from load_rig stands for its Rig, and reconstruct_scan takes the
     # projector nonlinearity it learned)
-    data = read_scan_with_progress(scan_dir)
-    data_2 = None if second is None else read_scan_with_progress(second)
+    read = read_scan_with_progress if read is None else read
+    data = read(scan_dir)
+    data_2 = None if second is None else read(second)
+    where = scan_dir if data_2 is None else f"{scan_dir} + {second}"
+
+    def user_error(exc):
+        msg = str(exc)
+        for d in (data, data_2):
+            if d is not None and msg.startswith(f"{d.source}: "):
+                msg = msg[len(d.source) + 2:]
+        return InputError(f"{where}: {msg}")
+
     with progress_bar("reconstructing", 1) as advance:
+        # the height map is made while the point files are written (write_reconstruction)
         try:
             if data_2 is None:
                 rec = reconstruct_scan(data, rig, max_residual=max_residual,
-                                       pixel_mm=pixel_mm, **decode_options)
+                                       with_height_map=False, **decode_options)
             else:
                 rec = reconstruct_stereo_scans(data, data_2, rig, max_residual=max_residual,
-                                               pixel_mm=pixel_mm, **decode_options)
+                                               with_height_map=False, **decode_options)
         except (DecodeError, PhaseInputError, TriangulationError) as exc:
-            msg = str(exc)
-            for d in (data, data_2):
-                if d is not None and msg.startswith(f"{d.source}: "):
-                    msg = msg[len(d.source) + 2:]
-            where = scan_dir if data_2 is None else f"{scan_dir} + {second}"
-            raise InputError(f"{where}: {msg}") from None
+            raise user_error(exc) from None
         advance()
     if rec.cloud.count == 0:
         raise InputError(f"{scan_dir}: no valid point (is the object lit and in focus, and "
                          "does the rig belong to this scan?)")
-    summary = {"scan": str(scan_dir), **cloud_summary(rec.cloud)}
-    if getattr(rec.coords, "noise", None) is not None:
-        summary["noise_model"] = rec.coords.noise.summary()
-    if second is not None:
-        summary["second_scan"] = str(second)
-        if getattr(rec.coords_2, "noise", None) is not None:
-            summary["noise_model_second"] = rec.coords_2.noise.summary()
-    if rec.height is not None:
-        summary["heightmap"] = {"pixel_mm": rec.height.pixel_mm,
-                                "shape": list(rec.height.z.shape)}
+    made = []
+
+    def make_height_map():
+        # as reconstruct_scan's with_height_map=True
+        hm = height_map(rec.cloud, pixel_mm=pixel_mm) if rec.cloud.count >= 3 else None
+        made.append(hm)
+        return hm
+
+    def summary(hm):
+        out = {"scan": str(scan_dir), **cloud_summary(rec.cloud)}
+        if getattr(rec.coords, "noise", None) is not None:
+            out["noise_model"] = rec.coords.noise.summary()
+        if second is not None:
+            out["second_scan"] = str(second)
+            if getattr(rec.coords_2, "noise", None) is not None:
+                out["noise_model_second"] = rec.coords_2.noise.summary()
+        if hm is not None:
+            out["heightmap"] = {"pixel_mm": hm.pixel_mm, "shape": list(hm.z.shape)}
+        return out
+
     with progress_bar("writing", 1) as advance, atomic_dir(output, force=force) as tmp:
-        write_reconstruction(tmp, rec.cloud, rec.height, texture=rec.texture,
-                             radiance=rec.radiance, title=title or Path(scan_dir).name,
-                             ply=ply, summary=summary)
+        try:
+            write_reconstruction(tmp, rec.cloud, make_height_map, texture=rec.texture,
+                                 radiance=rec.radiance, title=title or Path(scan_dir).name,
+                                 ply=ply, summary=summary)
+        except TriangulationError as exc:  # the height map's (e.g. pixel_mm too small)
+            raise user_error(exc) from None
         advance()
-    return rec
+    return dataclasses.replace(rec, height=made[0])
 
 
 def _prefetch(*modules: str):
@@ -99,6 +129,45 @@ def _prefetch(*modules: str):
     t = threading.Thread(target=run, name="telefringe-prefetch", daemon=True)
     t.start()
     return t
+
+
+def _read_ahead(*folders):
+    """Begin reading the scan ``folders`` on a background thread; return
+    ``read(folder) -> Scan``, which waits for that folder and raises its reading error.
+
+    The command then loads the rig (mostly numba's start-up, which holds the GIL) while
+    the images are decoded (OpenCV and zlib release it): on two cores the reading costs
+    about no time. ``read`` of a folder not given here reads it then.
+    """
+    import threading
+
+    # telefringe's own modules imported here, on this thread: the background thread
+    # imports only third-party leaves (OpenCV), nothing that the rig's loading imports
+    import telefringe.io.scan_json  # noqa: F401
+
+    results = {}
+
+    def run():
+        for folder in folders:
+            try:
+                results[folder] = (read_scan_with_progress(folder), None)
+            except BaseException as exc:  # noqa: BLE001 - raised by read() on this thread
+                results[folder] = (None, exc)
+
+    thread = threading.Thread(target=run, name="telefringe-read", daemon=True)
+    thread.start()
+
+    def read(folder):
+        if folder not in folders:
+            return read_scan_with_progress(folder)
+        thread.join()
+        data, exc = results[folder]
+        if exc is not None:
+            raise exc
+        return data
+
+    read.wait = thread.join
+    return read
 
 
 def reconstruct_cmd(
@@ -169,22 +238,29 @@ def reconstruct_cmd(
                          f"{noise_model!r}")
     # third-party leaves only, which nothing else imports meanwhile (two threads importing
     # modules that import each other could see each other's half-initialised modules)
-    _prefetch("plyfile", "tifffile", "PIL.Image", "PIL.ImageDraw")
+    _prefetch("plyfile", "tifffile", "PIL.Image", "PIL.ImageDraw", "x3pio")
     from telefringe.io.rig_json import load_rig
 
-    rig_obj = load_rig(rig)
-    extra = {"phase_errors": None} if refit_gamma else {}
-    n_cams = len(getattr(getattr(rig_obj, "rig", rig_obj), "cameras", ()))
-    if second is not None and n_cams < 2:
-        raise InputError(f"{rig}: --second needs a rig with two cameras (camera and camera_2),"
-                         " this one has one")
-    if second is None and getattr(getattr(rig_obj, "rig", rig_obj), "projector", 1) is None:
-        raise InputError(f"{rig}: the rig has no calibrated projector: give the second "
-                         "camera's scan with --second")
-    rec = reconstruct_to_folder(scan, rig_obj, output, force=force, pixel_mm=pixel_mm,
-                                max_residual=max_residual, ply=ply, gamma_correction=gamma,
-                                method=method, second=second, noise=noise_model,
-                                **({"search_mm": search_mm} if search_mm else {}), **extra)
+    read = _read_ahead(*((scan,) if second is None else (scan, second)))
+    try:  # the errors as before: the rig's, the output folder's, then the scan's
+        rig_obj = load_rig(rig)
+        n_cams = len(getattr(getattr(rig_obj, "rig", rig_obj), "cameras", ()))
+        if second is not None and n_cams < 2:
+            raise InputError(f"{rig}: --second needs a rig with two cameras (camera and "
+                             "camera_2), this one has one")
+        if second is None and getattr(getattr(rig_obj, "rig", rig_obj), "projector",
+                                      1) is None:
+            raise InputError(f"{rig}: the rig has no calibrated projector: give the second "
+                             "camera's scan with --second")
+        extra = {"phase_errors": None} if refit_gamma else {}
+        rec = reconstruct_to_folder(scan, rig_obj, output, force=force, pixel_mm=pixel_mm,
+                                    max_residual=max_residual, ply=ply,
+                                    gamma_correction=gamma, method=method, second=second,
+                                    noise=noise_model, read=read,
+                                    **({"search_mm": search_mm} if search_mm else {}),
+                                    **extra)
+    finally:
+        read.wait()  # no thread left reading, whatever happened
     c = rec.cloud
     for name, ax in (getattr(rec.coords, "axes", None) or {}).items():
         fit = getattr(ax, "phase_errors", None)
@@ -195,14 +271,20 @@ def reconstruct_cmd(
     for coords in (rec.coords, rec.coords_2):
         if getattr(coords, "noise", None) is not None:
             _report_noise(coords.noise)
+    if state.quiet:  # nothing more to print: the figures are not computed
+        return
     info(f"{c.count} points ({c.count / c.mask.size:.1%} of the pixels)")
+    import json
+
     import numpy as np
 
-    sz = c.sigma_z[c.mask]
-    if sz.size and np.all(np.isfinite(sz)):
-        info(f"sigma_z median {np.median(sz) * 1000:.2f} um, 95% below "
-             f"{np.percentile(sz, 95) * 1000:.2f} um")
-    if c.residual is not None:
+    # the same figures as summary.json's (median and 95th percentile of sigma_z over the
+    # valid points, where all are finite), read back rather than sorted again
+    summary = json.loads((Path(output) / "summary.json").read_text())
+    med, p95 = summary.get("sigma_z_median_mm"), summary.get("sigma_z_p95_mm")
+    if med is not None and p95 is not None:
+        info(f"sigma_z median {med * 1000:.2f} um, 95% below {p95 * 1000:.2f} um")
+    if c.residual is not None and state.verbose:
         r = c.residual[c.mask]
         detail(f"u/v consistency residual median {np.nanmedian(r):.3f} projector px")
     info(f"wrote {output}")

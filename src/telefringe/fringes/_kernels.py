@@ -70,37 +70,52 @@ def atan2_poly32_array(y, x, out):
 
 
 @nb.njit(inline="always", error_model="numpy")
-def _table_index(p, tab_scale, m_tab):
-    """Cell index and fraction of float32 phase p in (-pi, pi] on a periodic table of
-    m_tab samples at -pi + 2 pi j / m_tab."""
-    t = (p + _PI32) * tab_scale
-    i0 = np.int32(t)  # 0 <= t <= m_tab: truncation is the floor
-    f = t - _F32(i0)
-    i0 = i0 if i0 < m_tab else i0 - m_tab  # periodic: phase pi is phase -pi
-    i1 = i0 + 1
-    i1 = i1 if i1 < m_tab else i1 - m_tab
-    return i0, i1, f
+def _cell(p, tscale, top):
+    """Cell index i (0..top) and float32 fraction of float32 phase p in (-pi32, pi32] on
+    the grid -pi + 2 pi j / M (tscale = M / (2 pi), top = M), in float64. p + pi > 0: the
+    float32 above -pi32 nearest to it, -pi32 + ulp, is above -pi; p <= pi32 puts t at most
+    1.4e-8 M above M (cell M: the table's padding)."""
+    t = (float(p) + math.pi) * tscale
+    i = np.int64(t)  # t > 0: truncation is the floor
+    i = i if i < top else top
+    return i, _F32(t - float(i))
 
 
 @nb.njit(inline="always", error_model="numpy")
-def _table_correct32(ph, tab, tab_scale, nj):
-    """ph = wrap(ph - g(ph)) in place, g linearly interpolated (float32 table)."""
-    m_tab = tab.size
-    for j in range(nj):
-        p = ph[j]
-        i0, i1, f = _table_index(p, tab_scale, m_tab)
-        g0 = tab[i0]
-        q = p - (g0 + f * (tab[i1] - g0))
-        q = q - _TWO_PI32 if q > _PI32 else q
-        ph[j] = q + _TWO_PI32 if q <= -_PI32 else q
+def _table_correct32(ph, tab, nft, tscale, nj, with_nf, fac):
+    """ph = wrap(ph - g(ph)) in place, g linearly interpolated in the float32 table ``tab``
+    (M + 2 samples g(-pi + 2 pi j / M), j = 0..M + 1: the last two are the first two, one
+    period on); with ``with_nf`` also the noise factor 1 - g'(ph) (the measured phase's)
+    interpolated in ``nft`` (same grid) into ``fac``. tscale = M / (2 pi) (float64): the
+    cell and its fraction in float64, the interpolation in float32."""
+    top = tab.size - 2
+    if with_nf:
+        for j in range(nj):
+            p = ph[j]
+            i, f = _cell(p, tscale, top)
+            g0 = tab[i]
+            n0 = nft[i]
+            fac[j] = n0 + f * (nft[i + 1] - n0)
+            q = p - (g0 + f * (tab[i + 1] - g0))
+            q = q - _TWO_PI32 if q > _PI32 else q
+            ph[j] = q + _TWO_PI32 if q <= -_PI32 else q
+    else:
+        for j in range(nj):
+            p = ph[j]
+            i, f = _cell(p, tscale, top)
+            g0 = tab[i]
+            q = p - (g0 + f * (tab[i + 1] - g0))
+            q = q - _TWO_PI32 if q > _PI32 else q
+            ph[j] = q + _TWO_PI32 if q <= -_PI32 else q
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
-def table_correct32_array(phase, table, out):
-    """The fused kernel's float32 table correction over a 1-D float32 array (for tests):
-    out = wrap(phase - g(phase)), g from ``table`` (float32, periodic)."""
+def table_correct32_array(phase, table, nf_table, out, fac):
+    """The fused kernel's table correction over 1-D float32 arrays (for tests): out =
+    wrap(phase - g(phase)) and fac = the noise factor, from the padded float32 tables
+    ``table``, ``nf_table`` (M + 2 samples, see :func:`_table_correct32`)."""
     out[:] = phase
-    _table_correct32(out, table, _F32(table.size / TWO_PI), out.size)
+    _table_correct32(out, table, nf_table, (table.size - 2) / TWO_PI, out.size, True, fac)
 
 
 @nb.njit(inline="always", error_model="numpy")
@@ -303,16 +318,15 @@ def _phase32(s, c, ph, m2, nj):
 
 @nb.njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract"})
 def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, cw, s2w, c2w, ew,
-                 periods, length, tables, has_table, nf_tables, has_nf, ser_a, ser_b,
-                 ser_c0, ser_d, ser_n, has_series, ser_da, ser_db, nf_series, max_value,
-                 min_mod2,
+                 periods, length, tables, nf_tables, has_table, ser_a, ser_b,
+                 ser_c0, ser_d, ser_n, has_series, ser_da, ser_db, max_value, min_mod2,
                  max_res, full, noise_c, noise_gain, block_rows, tile,
                  out_u, out_mask, out_mod,
                  out_sigma, out_bg, out_exp, out_sat, out_low, out_shadow, out_rel):
     """One pass over the images of a hierarchical ladder (coarse to fine, the first level
     one period), per camera pixel: each level's N-step sums, HDR choice between its
-    exposures, phase (polynomial atan2), optional nonlinearity correction (table),
-    hierarchical unwrapping with the residual check, inverse-variance combination, masks
+    exposures, phase (polynomial atan2), optional nonlinearity correction (series or
+    table), hierarchical unwrapping with the residual check, inverse-variance combination, masks
     (saturation, low modulation, residual, range).
 
     Precision: sums exact in float32 where ``exact32`` (else float64, then rounded to
@@ -331,14 +345,14 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
         of 4, zero-padded.  s2w, c2w : (members, K) float32, second-harmonic weights.
     ew : (members, K) float32, 1 for each step and 0 for the padding (the background sum).
     periods : (L,) float64.  length : float, projector pixels.
-    tables : (L, M) float32 corrections g(measured phase) applied by linear interpolation
-        where has_table (L,) bool.
-    nf_tables : (L, M) float64 noise factors d(true)/d(measured) (full only; where has_nf).
+    tables, nf_tables : (L, M + 2) float32, the correction g and the noise factor
+        d(true)/d(measured) = 1 - g' against the measured phase at -pi + 2 pi j / M (j = 0
+        .. M + 1, periodic), linearly interpolated (:func:`_table_correct32`) where
+        has_table (L,) bool (which takes precedence over the series).
     ser_a, ser_b : (L, T) float32, ser_c0 : (L,) float32, ser_d, ser_n : (L,) int64: the
         correction as a Fourier series (see :func:`_series_correct32`), where has_series.
-    ser_da, ser_db : (L, T) float32: its derivative's series; nf_series : (L,) bool: the
-        noise factor (full only) is 1 - g' from it (where has_series; no table look-up),
-        else from nf_tables.
+    ser_da, ser_db : (L, T) float32: its derivative's series; the noise factor (full
+        only) is 1 - g' from it (no table look-up: where has_series and not has_table).
     min_mod2 : (L,) float32, thresholds on S^2 + C^2 (rounded up to float32).
     max_res : float, rad.
     full : bool. False: weights (p B)^2 and only out_u, out_mask, out_mod (B of the
@@ -353,8 +367,7 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
     n_lev = nsteps.size
     rows = out_u.shape[0]
     cols = out_u.shape[1]
-    m_tab = tables.shape[1]
-    tab_scale = _F32(m_tab / TWO_PI)
+    tscale = (tables.shape[1] - 2) / TWO_PI
     cut32 = _F32(math.pi / length)
     inv2pi32 = _F32(INV_TWO_PI)
     half32 = _F32(0.5)
@@ -509,7 +522,13 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                             sin2 = (m_two * a * b) * inv if pos else _ZERO32
                             quad = (sa[j] - (cos2 * c2[j] - sin2 * s2[j])) * inv_n32
                             dvar[j] = nc32 + ng32 * (quad if quad > _ZERO32 else _ZERO32)
-                        if has_series[lev] and nf_series[lev]:
+                        if has_table[lev]:
+                            # noise factor at the measured phase and the correction, from
+                            # the tables (scalar look-ups)
+                            _table_correct32(ph, tables[lev], nf_tables[lev], tscale, nj,
+                                             True, nfac)
+                            corrected = True
+                        elif has_series[lev]:
                             # noise factor 1 - g' at the measured phase from the series
                             # (vectorised), with the correction itself
                             _series_correct32(ph, s32, c32, m2, ser_a[lev], ser_b[lev],
@@ -517,16 +536,10 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                                               dr, di, wr, wi, gacc, nj, True, ser_da[lev],
                                               ser_db[lev], nfac)
                             corrected = True
+                        if corrected:
                             for j in range(nj):
                                 fs = nfac[j]
                                 dvar[j] = dvar[j] * fs * fs
-                        elif has_nf[lev]:  # noise factor at the measured phase (table)
-                            nft = nf_tables[lev]
-                            for j in range(nj):
-                                i0, i1, f = _table_index(ph[j], tab_scale, m_tab)
-                                g0 = nft[i0]
-                                fac = _F32(g0 + float(f) * (nft[i1] - g0))
-                                dvar[j] = dvar[j] * fac * fac
                         for j in range(nj):  # (0 where sigma would be 0)
                             d = dvar[j]
                             w = wk * m2[j] / (d if d > _ZERO32 else _ONE32)
@@ -537,13 +550,14 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                             w32[j] = wscale * m2[j]
                     if corrected:
                         pass
+                    elif has_table[lev]:
+                        _table_correct32(ph, tables[lev], nf_tables[lev], tscale, nj, False,
+                                         nfac)
                     elif has_series[lev]:
                         _series_correct32(ph, s32, c32, m2, ser_a[lev], ser_b[lev],
                                           ser_c0[lev], ser_d[lev], ser_n[lev], zr, zi, dr, di,
                                           wr, wi, gacc, nj, False, ser_a[lev], ser_b[lev],
                                           gacc)
-                    elif has_table[lev]:  # (the look-up does not vectorise)
-                        _table_correct32(ph, tables[lev], tab_scale, nj)
                     if lev == 0:
                         for j in range(nj):
                             q = ph[j] + cut32

@@ -39,7 +39,7 @@ class FastCoordinates:
 
 
 #: the correction tables of recent models, least recently used first; bounded in entries
-#: and in bytes (a table has up to 2^20 entries: 16 MB with its noise factors), guarded by
+#: and in bytes (a table has up to 2^20 + 2 entries: 8 MB with its noise factors), guarded by
 #: a lock (decode runs in threads, e.g. under a Dask threaded scheduler)
 _TABLE_CACHE: collections.OrderedDict = collections.OrderedDict()
 _TABLE_CACHE_LOCK = threading.Lock()
@@ -81,29 +81,80 @@ def _cache_put(key, value) -> None:
             total -= _table_bytes(old)
 
 
+#: the fused kernel's correction tables: the bounds their size is chosen for (linear
+#: interpolation, from the correction's derivatives, :func:`_table_size`): the correction
+#: g within TABLE_TOL rad, the noise factor 1 - g' within TABLE_NF_TOL (relative)
+TABLE_TOL = 1e-7
+TABLE_NF_TOL = 5e-7
+TABLE_MIN_SIZE = 4096
+TABLE_MAX_SIZE = 2 ** 20
+#: a level's correction comes from the tables when its series has more terms than this,
+#: or has none, or (full decode) its noise factor is not exact. The series costs ~8
+#: float32 operations per term and pixel, vectorised; the tables two (four with the noise
+#: factor) scalar look-ups per pixel (LLVM does not gather on this machine's CPU), about
+#: the cost of a 20 to 30 term series: measured no faster in the full decode for the
+#: paper rig's learned models (27, 16 and 4 terms; benchmarks/reconstruct.py), so the tables
+#: serve only where the series cannot (48 = SERIES_MAX_TERMS: never by length)
+TABLE_MIN_TERMS = 48
+
+
+def _derivative_bounds(model: PhaseErrorModel) -> tuple[float, float, float]:
+    """Upper bounds (G1, G2, G3) of the first three derivatives' magnitudes (rad per
+    rad^k) of the correction g of ``model`` (the measured phase minus the true one,
+    against the measured phase): ``G_m = sum_k k^m |c_k|`` over the amplitudes |c_k| of
+    g's Fourier series, from the FFT of g solved exactly at ``_SERIES_GRID`` points. The
+    FFT's coefficients are g's own within the aliasing of the orders above
+    _SERIES_GRID / 2, checked negligible: the amplitudes above order _SERIES_GRID / 4 sum
+    to < 1e-13 rad (else ValueError)."""
+    n = _SERIES_GRID
+    grid = -np.pi + TWO_PI * np.arange(n) / n
+    g = grid - model._invert(grid)
+    amp = 2.0 * np.abs(np.fft.rfft(g)) / n
+    amp[0] = 0.0
+    if amp[n // 4:].sum() >= 1e-13:
+        raise ValueError("the correction's Fourier series does not converge within "
+                         f"{n // 4} orders: no table bound")
+    k = np.arange(amp.size, dtype=np.float64)
+    return tuple(float(np.sum(k ** m * amp)) for m in (1, 2, 3))
+
+
+def _table_size(bounds, n_min: int = 1) -> int:
+    """The smallest power of two M >= max(n_min, TABLE_MIN_SIZE) (at most TABLE_MAX_SIZE)
+    whose linear interpolation, spacing h = 2 pi / M, keeps the correction within
+    TABLE_TOL and the noise factor within TABLE_NF_TOL (relative): the error of linear
+    interpolation of f on a cell of width h is at most h^2 / 8 max |f''|, i.e. h^2 / 8 G2
+    for g and h^2 / 8 G3 for 1 - g' (which is at least 1 - G1 > 0)."""
+    g1, g2, g3 = bounds
+    m = max(TABLE_MIN_SIZE, 1 << max(int(n_min) - 1, 0).bit_length())
+    while m < TABLE_MAX_SIZE:
+        c = (TWO_PI / m) ** 2 / 8.0
+        if c * g2 <= TABLE_TOL and (g1 < 1.0 and c * g3 <= TABLE_NF_TOL * (1.0 - g1)):
+            break
+        m *= 2
+    return m
+
+
 def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """Correction table g (float64, the measured phase minus the true one), noise-factor
-    table ``1 / (1 + e')`` (float64) of ``model`` on the grid ``-pi + 2 pi j / n``, with n
-    (>= n_min, from 4096 by factors of 4) the first size whose linear interpolation error,
-    checked at every mid-point against the exact inverse, is <= 1e-8 rad, and g as a
-    Fourier series (:func:`_model_series`). Cached (thread-safe, at most
-    ``_TABLE_CACHE_MAX_ENTRIES`` models and ``_TABLE_CACHE_MAX_BYTES``, least recently
-    used evicted first); the arrays are read-only. The fused kernel needs the tables only
-    where the series cannot stand in for them (building them costs 0.1-0.5 s of CPU)."""
+    """The fused kernel's tables of ``model``: the correction g (the measured phase minus
+    the true one, by Newton's exact inverse) and the noise factor ``1 / (1 + e'(true
+    phase)) = 1 - g'`` at the measured phases ``-pi + 2 pi j / M``, j = 0..M + 1 (the last
+    two repeat the first two: no wrap in the look-up), float32 (M + 2,), M from
+    :func:`_table_size` (>= n_min); and g as a Fourier series (:func:`_model_series`).
+    Cached (thread-safe, at most ``_TABLE_CACHE_MAX_ENTRIES`` models and
+    ``_TABLE_CACHE_MAX_BYTES``, least recently used evicted first); the arrays are
+    read-only."""
     key = _model_key(model) + (int(n_min),)
     hit = _cache_get(key)
     if hit is not None:
         return hit
     # (computed outside the lock: two threads may build the same tables, equal ones)
-    n = 4096
-    while True:
-        g, err = model.correction_table(n)
-        if n >= n_min and (err <= 1e-8 or n >= 2 ** 20):
-            break
-        n *= 4
+    n = _table_size(_derivative_bounds(model), n_min)
     grid = -np.pi + TWO_PI * np.arange(n) / n
-    nf = np.array(model.noise_factor(grid), dtype=np.float64)
-    value = (g, nf, _model_series(model))
+    phi = model._invert(grid)
+    g = grid - phi
+    nf = 1.0 / (1.0 + model.slope(phi))
+    value = (np.append(g, g[:2]).astype(np.float32), np.append(nf, nf[:2]).astype(np.float32),
+             _model_series(model))
     _cache_put(key, value)
     return value
 
@@ -275,17 +326,18 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     use = [m is not None and bool(m.harmonics) for m in (models or [None] * n_lev)]
     series = [_model_series(m) if u else None for m, u in zip(models or [None] * n_lev, use,
                                                                 strict=True)]
-    # tables only where the series cannot stand in: no series (the correction table) or
-    # its noise factor not within NF_SERIES_TOL (the noise-factor table)
-    need = [u and (s is None or not s[4]) for u, s in zip(use, series, strict=True)]
+    # tables where the series is long (TABLE_MIN_TERMS), missing, or (full decode) its
+    # noise factor is not within NF_SERIES_TOL; the series elsewhere
+    table = [u and (s is None or len(s[0]) > TABLE_MIN_TERMS or (full and not s[4]))
+             for u, s in zip(use, series, strict=True)]
     m_tab = 1
-    if any(need):
-        m_tab = max(_model_tables(m, 1)[0].size for m, u in zip(models, need, strict=True)
-                    if u)
-    tables = np.zeros((n_lev, m_tab), dtype=np.float32)
-    nf_tables = np.ones((n_lev, m_tab))
-    for i, u in enumerate(need):
-        if u:
+    if any(table):
+        m_tab = max(_model_tables(m, 1)[0].size - 2
+                    for m, t in zip(models, table, strict=True) if t)
+    tables = np.zeros((n_lev, m_tab + 2), dtype=np.float32)
+    nf_tables = np.ones((n_lev, m_tab + 2), dtype=np.float32)
+    for i, t in enumerate(table):
+        if t:
             tables[i], nf_tables[i] = _model_tables(models[i], m_tab)[:2]
     n_ser = max([len(s[0]) for s in series if s is not None] + [1])
     ser_a = np.zeros((n_lev, n_ser), dtype=np.float32)
@@ -296,14 +348,12 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     has_series = np.zeros(n_lev, dtype=np.bool_)
     ser_da = np.zeros((n_lev, n_ser), dtype=np.float32)
     ser_db = np.zeros((n_lev, n_ser), dtype=np.float32)
-    nf_series = np.zeros(n_lev, dtype=np.bool_)
-    for i, s in enumerate(series):
-        if s is not None:
-            a, b, c0, d, nf_ok = s
+    for i, (s, t) in enumerate(zip(series, table, strict=True)):
+        if s is not None and not t:
+            a, b, c0, d, _ = s
             ser_a[i, :a.size], ser_b[i, :b.size] = a, b
             ser_c0[i], ser_d[i], ser_n[i], has_series[i] = c0, d, a.size, True
             ser_da[i, :a.size], ser_db[i, :b.size] = _series_derivative(s)
-            nf_series[i] = nf_ok
     nst = np.asarray(steps, dtype=np.int64)
     # thresholds on S^2 + C^2 (float32 in the kernel): the smallest float32 >= the exact
     # value, so that m2 >= thr32 exactly when m2 >= thr
@@ -333,10 +383,9 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
         np.asarray([e for _, e in members], dtype=np.float64), exact32, nst,
         sw.astype(np.float32), cw.astype(np.float32), sw, cw, s2w.astype(np.float32),
         c2w.astype(np.float32), ew,
-        np.asarray(periods, dtype=np.float64), float(length), tables,
-        np.asarray(use, dtype=np.bool_) & ~has_series, nf_tables,
-        np.asarray(use, dtype=np.bool_), ser_a, ser_b, ser_c0, ser_d, ser_n, has_series,
-        ser_da, ser_db, nf_series,
+        np.asarray(periods, dtype=np.float64), float(length), tables, nf_tables,
+        np.asarray(table, dtype=np.bool_), ser_a, ser_b, ser_c0, ser_d, ser_n, has_series,
+        ser_da, ser_db,
         float(max_value), min_mod2,
         float(max_residual), bool(full), float(noise.read_noise ** 2 + noise.quantization ** 2),
         float(noise.gain), int(block_rows), int(min(tile, max(shape[1], 1))),

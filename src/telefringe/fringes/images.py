@@ -21,7 +21,9 @@ def fringe_free_image(scan) -> np.ndarray:
     if not phase:
         raise ValueError(f"{scan.source}: no white frame and no phase group to average")
     g, s = max(phase, key=lambda gs: (gs[0].steps, gs[0].periods, gs[0].exposure <= 1.0))
-    return np.asarray(s, dtype=np.float64).mean(axis=0)
+    # accumulated in float64 without a float64 copy of the stack (a fresh 40 MB for 4 x
+    # 1.3 Mpx: ~0.1 s of a cold start); the same sums in the same order, bit for bit
+    return np.mean(s, axis=0, dtype=np.float64)
 
 
 def radiance_image(coords) -> np.ndarray | None:

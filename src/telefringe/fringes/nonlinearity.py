@@ -58,6 +58,23 @@ TWO_PI = 2.0 * np.pi
 #: bias it removes
 _EIV_DILUTION = 0.1
 
+#: largest contraction (ratio of two successive Gauss-Newton step sizes) for which the
+#: remaining steps are extrapolated as a geometric series to stop early (see
+#: :func:`_gauss_newton`); measured contractions are 0.03-0.1 from a subsample's solution
+#: and up to 0.8 after harmonics are dropped
+_MAX_CONTRACTION = 0.25
+
+#: the remaining distance to the Gauss-Newton fixed point (extrapolated, in standard
+#: errors of each coefficient) at which :func:`_gauss_newton` stops: a model 2 % of its
+#: own uncertainty away from the fixed point; the model's uncertainty moves the decoded
+#: phase by about 1 % of its noise (1e5 samples, ~10 coefficients per group), so this
+#: moves it by ~2e-4 of the noise (tests/test_learn_gamma.py bounds it at 1e-3)
+_REMAINING = 0.02
+
+#: largest move (in standard errors) of a coefficient by the linearised start of a refit
+#: (see :func:`_conditioned_start`)
+_MAX_SHIFT = 1.0
+
 
 @dataclass(frozen=True)
 class PhaseErrorModel:
@@ -200,7 +217,14 @@ class PhaseErrorModel:
         n = 64 * max(self.harmonics)
         while True:
             grid = np.linspace(-np.pi, np.pi, n, endpoint=False)
-            low = float(np.min(1.0 + self.slope(grid)))
+            if n <= 2 ** 16:  # short grid: one thread (see slope_serial)
+                slope = np.empty(n)
+                _k.slope_serial(grid, np.asarray(self.harmonics, dtype=np.int64),
+                                np.asarray(self.cos_coef, dtype=np.float64),
+                                np.asarray(self.sin_coef, dtype=np.float64), slope)
+            else:
+                slope = self.slope(grid)
+            low = float(np.min(1.0 + slope))
             if low <= 0.0:
                 return False
             if low - k2 * (np.pi / n) > 0.0:
@@ -458,9 +482,10 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
                          f"to tell it from the other harmonics (variance inflation "
                          f"{vif:.3g} > {max_inflation:g})")
         if pruned != harm:
+            start = _conditioned_start(models, cov, harm, pruned)
             harm = pruned
             models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject,
-                                             start=models, notes=notes)
+                                             start=start, notes=notes)
     if significance > 0 and cov is not None:
         offs = np.cumsum([0] + [2 * len(h) for h in harm])
         pruned = []
@@ -481,9 +506,48 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
             pruned.append(kept)
         if pruned != harm:
             models, rms, nkeep, _ = _solve(samp, per, pruned, pairs, iterations, reject,
-                                           start=models, notes=notes)
+                                           start=_conditioned_start(models, cov, harm,
+                                                                    pruned), notes=notes)
     return PhaseErrorFit(tuple(models), rms, nkeep, coverage=coverage,
                          warnings=tuple(dict.fromkeys(notes)))
+
+
+def _conditioned_start(models, cov, harm, kept):
+    """Starting models for a refit with the harmonics ``kept`` (per group, a subset of
+    ``harm``): the kept coefficients moved to where the linearised fit puts them once the
+    dropped ones are zero, ``c_K - C_KD C_DD^-1 c_D`` (C: the covariance of the fit of
+    ``models``, ordered as :func:`_solve` orders the coefficients). The refit then starts
+    near its solution. The models as they are (pruned) when that system is singular or
+    moves a coefficient by more than ``_MAX_SHIFT`` standard errors (measured: <= 0.45 on
+    well covered scans; 3.4 on a tiny plane covering 6 % of the circle, where that start
+    led Gauss-Newton astray)."""
+    coef = np.concatenate([np.column_stack([m.cos_coef, m.sin_coef]).ravel()
+                           for m in models])
+    cols = [(g, m) for g, h in enumerate(harm) for m in h for _ in (0, 1)]
+    keep = np.array([m in kept[g] for g, m in cols], dtype=bool)
+    new = coef.copy()
+    if (~keep).any() and keep.any():
+        c_kd = cov[np.ix_(keep, ~keep)]
+        c_dd = cov[np.ix_(~keep, ~keep)]
+        try:
+            new[keep] = coef[keep] - c_kd @ np.linalg.solve(c_dd, coef[~keep])
+        except np.linalg.LinAlgError:
+            new = coef
+        # only a modest move (within _MAX_SHIFT standard errors): a larger one says the
+        # dropped harmonics were entangled with the kept ones (an uneven phase coverage),
+        # where the linearisation is not to be trusted
+        se = np.sqrt(np.abs(np.diag(cov)))
+        if not (np.all(np.isfinite(new))
+                and np.all(np.abs(new - coef)[keep] <= _MAX_SHIFT * se[keep])):
+            new = coef
+    out, i = [], 0
+    for g, (m, h) in enumerate(zip(models, harm, strict=True)):
+        c, s_ = new[i:i + 2 * len(h):2], new[i + 1:i + 2 * len(h):2]
+        i += 2 * len(h)
+        sel = [j for j, order in enumerate(h) if order in kept[g]]
+        out.append(PhaseErrorModel(m.periods, tuple(h[j] for j in sel), c[sel].copy(),
+                                   s_[sel].copy()))
+    return out
 
 
 def _coverage(phase) -> float:
@@ -584,12 +648,17 @@ def _initial(samp, per, harm, harm_arr, offs, pairs, notes=None):
                             inv_coef[offs[g] + 1:offs[g + 1]:2])
         est = _wrap(samp[g] - m.error(samp[g]))
         d = _wrap(samp[g] - est)
-        h = np.asarray(harm[g], dtype=float)
-        design = np.concatenate([np.stack([np.cos(k * est), np.sin(k * est)], 1) for k in h],
-                                axis=1)
-        c, *_ = np.linalg.lstsq(design[::max(1, est.size // 20000)],
-                                d[::max(1, est.size // 20000)], rcond=None)
-        coef[offs[g]:offs[g + 1]] = c
+        # least squares on at most ~20,000 samples, by its normal equations (a small
+        # well-conditioned system: orders of one group on a covered circle), compiled
+        stride = max(1, est.size // 20000)
+        h = harm_arr[g]
+        ata_g, atb_g = np.empty((2 * h.size, 2 * h.size)), np.empty(2 * h.size)
+        _k.harmonic_normal_equations(np.ascontiguousarray(est[::stride]),
+                                     np.ascontiguousarray(d[::stride]), h, ata_g, atb_g)
+        try:
+            coef[offs[g]:offs[g + 1]] = np.linalg.solve(ata_g, atb_g)
+        except np.linalg.LinAlgError:
+            coef[offs[g]:offs[g + 1]] = np.linalg.lstsq(ata_g, atb_g, rcond=None)[0]
     return _invertible_start(coef, per, harm, offs, notes, "the linear fit")
 
 
@@ -633,8 +702,9 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
     # (a start from a fit with more harmonics is already close: no subsample phase)
     stride = max(1, samp[0].size // 20_000) if start is None else 1
     if stride > 1:
-        sub = [x[::stride] for x in samp]
-        sub_pairs = [(a, b, r, *(None if v is None else np.asarray(v)[::stride]
+        sub = [np.ascontiguousarray(x[::stride]) for x in samp]
+        sub_pairs = [(a, b, r, *(None if v is None else
+                                 np.ascontiguousarray(np.asarray(v)[::stride])
                                  for v in rest)) for a, b, r, *rest in pairs]
         coef = (_initial(sub, per, harm, harm_arr, offs, sub_pairs, notes) if start is None
                 else _start_coefficients(start, harm, offs, per, notes))
@@ -643,9 +713,12 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
     else:
         coef = (_initial(samp, per, harm, harm_arr, offs, pairs, notes) if start is None
                 else _start_coefficients(start, harm, offs, per, notes))
+    # (a subsample's solution or a start from another fit is good: reject from the first
+    # iteration on)
+    good_start = stride > 1 or start is not None
     coef, rms, total_keep, ata, chi2 = _gauss_newton(samp, per, harm, harm_arr, offs, pairs,
                                                      coef, max_it, reject, tol=1e-7,
-                                                     reject_first=stride > 1, notes=notes)
+                                                     reject_first=good_start, notes=notes)
     models = _models(per, harm, offs, coef)
     s2 = chi2 / max(total_keep - n_par, 1)
     ridge = 1e-9 * np.trace(ata) / n_par + 1e-300
@@ -698,37 +771,64 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
     rms = chi2 = 0.0
     total_keep = 0
     ata = np.eye(n_par)
-    unwrapped = [None] * len(per)
+    last = 0.0  # the previous step's size in standard errors (0: none yet)
+    # the samples as (groups, n) arrays for the compiled pass, each group's sigma (from
+    # the pairs it is in), the pairs' groups, ratios and orders
+    n_groups, n = len(per), samp[0].size
+    meas = np.ascontiguousarray(np.stack([np.asarray(x, dtype=np.float64) for x in samp]))
+    sig2d = np.ones((n_groups, n))
+    for a, b, _, sig_a, sig_b, *_ in pairs:
+        sig2d[a], sig2d[b] = sig_a, sig_b
+    pair_a = np.array([p[0] for p in pairs], dtype=np.int64)
+    pair_b = np.array([p[1] for p in pairs], dtype=np.int64)
+    ratio = np.array([float(p[2]) for p in pairs])
+    absolute = np.array([p[5] is not None for p in pairs], dtype=bool)
+    ka2d, kb2d = np.zeros((len(pairs), n)), np.zeros((len(pairs), n))
+    for j, (*_, ka, kb) in enumerate(pairs):
+        if ka is not None:
+            ka2d[j], kb2d[j] = ka, kb
+    unw = np.zeros((n_groups, n))
+    warm = np.zeros(n_groups, dtype=bool)
+    h_max = max(1, max(h.size for h in harm_arr))
+    harm2d = np.zeros((n_groups, h_max), dtype=np.int64)
+    nharm = np.array([h.size for h in harm_arr], dtype=np.int64)
+    for g, h in enumerate(harm_arr):
+        harm2d[g, :h.size] = h
+    width = max(1, max(2 * (harm_arr[a].size + harm_arr[b].size) for a, b, *_ in pairs))
+    pair_ata, pair_atb = np.empty((len(pairs), width, width)), np.empty((len(pairs), width))
+    stein = np.empty((len(pairs), 2, 2 * h_max))
     for it in range(max_it):
-        # true-phase estimates by Newton on the samples themselves (no table needed),
-        # each started from the previous iteration's solution
-        unwrapped = [m._invert(x, u) if m.harmonics else x
-                     for m, x, u in zip(models, samp, unwrapped, strict=True)]
-        est = [_wrap(u) for u in unwrapped]
-        gain = [1.0 / (1.0 + m.slope(e)) for m, e in zip(models, est, strict=True)]
+        # one compiled pass: true-phase estimates by Newton on the samples themselves (no
+        # table needed), each started from the previous iteration's solution, wrapped,
+        # their gains 1 / (1 + e'), and every pair's residuals and weights
+        dense_c, dense_s, divisor, kmax = _dense_ladder(models)
+        est, gain = np.empty((n_groups, n)), np.empty((n_groups, n))
+        res_all, wt_all = np.empty((len(pairs), n)), np.empty((len(pairs), n))
+        absz_all = np.empty((len(pairs), n))
+        bad = np.zeros(n_groups, dtype=bool)
+        _k.ladder_residuals(meas, warm, unw, dense_c, dense_s, divisor, kmax, sig2d, pair_a,
+                            pair_b, ratio, absolute, ka2d, kb2d, unw, est, gain, res_all,
+                            wt_all, absz_all, bad)
+        if bad.any():
+            raise ValueError("phase error model is not invertible (slope <= -1)")
+        warm[:] = True
         ata = np.zeros((n_par, n_par))
         atb = np.zeros(n_par)
-        num = den = chi2 = 0.0
+        num = den = 0.0
         total_keep = 0
         terms = []
-        for a, b, r, sig_a, sig_b, ka, kb in pairs:
-            if ka is None:
-                res = _wrap(r * est[a] - est[b])
-            else:
-                res = _wrap(r * (est[a] + TWO_PI * ka) - (est[b] + TWO_PI * kb))
-            var = (r * sig_a * gain[a]) ** 2 + (sig_b * gain[b]) ** 2
-            with np.errstate(divide="ignore", invalid="ignore"):
-                wt = np.where(np.isfinite(var) & (var > 0), 1.0 / var, 0.0)
-            z = res * np.sqrt(wt)
+        for j, (a, b, r, sig_a, sig_b, _, _) in enumerate(pairs):
+            res, wt, absz = res_all[j], wt_all[j], absz_all[j]
             use = wt > 0
-            scale = 1.4826 * np.median(np.abs(z[use])) if use.any() else 0.0
-            keep = (use & (np.abs(z) <= reject * max(scale, 1e-12))
+            scale = 1.4826 * float(np.median(absz[use])) if use.any() else 0.0
+            keep = (use & (absz <= reject * max(scale, 1e-12))
                     if (it or reject_first) else use)
-            num += float(np.sum(wt[keep] * res[keep] ** 2))
-            chi2 += float(np.sum(z[keep] ** 2))
-            den += float(np.sum(wt[keep]))
-            total_keep += int(keep.sum())
-            terms.append((a, b, r, sig_a, sig_b, res, np.where(keep, wt, 0.0)))
+            wk = np.where(keep, wt, 0.0)
+            num += float(np.dot(wk, res * res))
+            den += float(np.sum(wk))
+            total_keep += int(np.count_nonzero(keep))
+            terms.append((a, b, r, sig_a, sig_b, res, wk))
+        chi2 = num  # (the weighted sum of squares: z^2 = w res^2)
         rms = float(np.sqrt(num / den)) if den > 0 else 0.0
         # errors in variables (see the docstring): each group's noise variance as a true
         # phase, tau^2 (the model's sigmas times the variance scale the residuals measure),
@@ -737,24 +837,33 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         sig_g = {}
         for a, b, _, sig_a, sig_b, *_ in pairs:
             sig_g[a], sig_g[b] = sig_a, sig_b
-        tau2 = [s2 * (sig_g[g] * gain[g]) ** 2 if g in sig_g else np.zeros(1)
-                for g in range(len(per))]
-        fix = [0.5 * harm_arr[g].astype(float) ** 2 * float(np.median(tau2[g]))
+        fix = [0.5 * harm_arr[g].astype(float) ** 2
+               * (float(np.median(s2 * (sig_g[g] * gain[g]) ** 2)) if g in sig_g else 0.0)
                <= _EIV_DILUTION for g in range(len(per))]
-        curv = [_curvature(m, e, t, f) for m, e, t, f in zip(models, est, tau2, fix,
-                                                               strict=True)]
-        for a, b, r, sig_a, sig_b, res, wk in terms:
-            # the mean of the inversion of a noisy phase, taken out of the residual
-            mean_bias = 0.5 * s2 * (r * sig_a ** 2 * -gain[a] ** 3 * curv[a]
-                                    - sig_b ** 2 * -gain[b] ** 3 * curv[b])
-            _pair_normal_equations(est[a], est[b], -r * gain[a], gain[b], harm_arr[a],
-                                   harm_arr[b], int(offs[a]), int(offs[b]),
-                                   -(res - mean_bias), wk, ata, atb)
-            # Stein's lemma: E[J^T res] = -tau^2 E[F'] per sample, taken out of J^T res
-            for g, fac in ((a, r * r * (sig_a * gain[a]) ** 2), (b, (sig_b * gain[b]) ** 2)):
-                if harm_arr[g].size:
-                    atb[offs[g]:offs[g + 1]] -= s2 * _stein_sum(
-                        models[g], est[g], gain[g], curv[g], wk * fac, fix[g])
+        # one compiled pass over every pair: the damped curvatures, the mean of the
+        # inversion of a noisy phase taken out of the residual, the normal equations'
+        # rows and Stein's sums (E[J^T res] = -tau^2 E[F'] per sample, taken out of J^T res)
+        sel = np.zeros((n_groups, h_max), dtype=bool)
+        fix_c, fix_s = np.zeros_like(dense_c), np.zeros_like(dense_s)
+        for g in range(n_groups):
+            sel[g, :harm_arr[g].size] = fix[g]
+            for j, order in enumerate(harm_arr[g]):
+                if fix[g][j]:
+                    fix_c[g, order // divisor[g]] += models[g].cos_coef[j]
+                    fix_s[g, order // divisor[g]] += models[g].sin_coef[j]
+        wk_all = np.stack([t[6] for t in terms])
+        _k.ladder_normal_equations(est, gain, sig2d, pair_a, pair_b, ratio, res_all, wk_all,
+                                   float(s2), harm2d, nharm, sel, fix_c, fix_s, divisor, kmax,
+                                   pair_ata, pair_atb, stein)
+        for j, (a, b, *_) in enumerate(terms):
+            na, nb_ = 2 * harm_arr[a].size, 2 * harm_arr[b].size
+            loc = pair_ata[j, :na + nb_, :na + nb_]
+            locb = pair_atb[j, :na + nb_]
+            index = np.concatenate([offs[a] + np.arange(na), offs[b] + np.arange(nb_)])
+            ata[np.ix_(index, index)] += loc
+            atb[index] += locb
+            atb[offs[a]:offs[a + 1]] -= s2 * stein[j, 0, :na]
+            atb[offs[b]:offs[b + 1]] -= s2 * stein[j, 1, :nb_]
         if it == max_it - 1:
             break
         # a tiny ridge keeps poorly covered harmonics (partial phase coverage) bounded
@@ -772,13 +881,45 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
             break
         coef = coef + step
         models = trial
-        # converged: the step is below tol, or below 1 % of every coefficient's
-        # standard error (further steps would not change the result materially)
+        # converged: the step is below tol, or below _REMAINING of every coefficient's
+        # standard error (the steps still to come are a fraction q of it; further steps
+        # would not change the result materially), or the steps shrink fast enough that
+        # all the steps still to come, bounded by the geometric series of the last
+        # contraction q (in standard errors), q / (1 - q) |step|, are below _REMAINING
         s2 = chi2 / max(total_keep - n_par, 1)
         se = np.sqrt(np.abs(s2 * np.diag(np.linalg.inv(ata + ridge * np.eye(n_par)))))
-        if np.max(np.abs(step)) < tol or np.all(np.abs(step) <= 0.01 * se):
+        size = float(np.max(np.abs(step) / np.maximum(se, 1e-300)))
+        q = size / last if last > 0 else np.inf
+        last = size
+        if (np.max(np.abs(step)) < tol or size <= _REMAINING
+                or (q <= _MAX_CONTRACTION and q / (1.0 - q) * size <= _REMAINING)):
             break
     return coef, rms, total_keep, ata, chi2
+
+
+#: an empty array: no absolute phases (kernels take arrays, not None)
+_NONE = np.empty(0)
+
+
+def _dense_ladder(models):
+    """Every group's coefficients on the dense axis of multiples of its orders' divisor
+    (as :func:`telefringe.fringes._nonlinearity_kernels.ladder_residuals` takes them):
+    cos, sin (G, K) zero-padded, divisor (G,) and kmax (G,) int64 (1 and 0 for a group
+    without harmonics)."""
+    divisor = np.ones(len(models), dtype=np.int64)
+    kmax = np.zeros(len(models), dtype=np.int64)
+    for g, m in enumerate(models):
+        if m.harmonics:
+            h = np.asarray(m.harmonics, dtype=np.int64)
+            divisor[g] = max(int(np.gcd.reduce(h)), 1)
+            kmax[g] = int(h.max()) // divisor[g]
+    cos = np.zeros((len(models), int(kmax.max()) + 1))
+    sin = np.zeros_like(cos)
+    for g, m in enumerate(models):
+        for order, c, s_ in zip(m.harmonics, m.cos_coef, m.sin_coef, strict=True):
+            cos[g, int(order) // divisor[g]] += c
+            sin[g, int(order) // divisor[g]] += s_
+    return cos, sin, divisor, kmax
 
 
 def _curvature(model, x, tau2, fix):

@@ -118,6 +118,12 @@ def sphere_summary(f, base=None, *, region: str | None = None, uncertainty=None,
         "variance_px2": _f(spread.variance_px2),
         "sigma_variance_px2": _f(spread.sigma_variance_px2),
         "estimated": bool(spread.estimated), "max_view_deg": _f(spread.max_view_deg)}
+    if spread is not None and getattr(spread, "cameras", 1) == 2:
+        # two cameras: the second camera's variance (equal to the first's when shared)
+        out["point_spread"].update({
+            "cameras": 2, "shared": bool(spread.shared),
+            "variance_2_px2": _f(spread.variance_2_px2),
+            "sigma_variance_2_px2": _f(spread.sigma_variance_2_px2)})
     return out
 
 

@@ -18,8 +18,24 @@ On the mixed rig with the true devices and no noise the plain fit's centre was o
 (+1.1, -0.3, -1.4) um, in proportion to s^2; tracing every pixel exactly or one albedo
 for sphere and plane changed it by < 0.15 um (the renderer is not the cause).
 :func:`measure_sphere` given the rig and an image fits through the model (with s^2
-estimated, or given); a two-camera rig is not modelled yet (its points are fitted as
-they are).
+estimated, or given).
+
+Two cameras (:func:`stereo_spread_shift`): each camera's decoded phase is biased by its
+own spread, and the matcher interpolates the second camera's map bilinearly at the
+matched sub-pixel, which on a curved map adds ``f (1 - f) H / 2`` per axis; the point
+moves along the first camera's line to where the two biased phases agree. On the
+``stereo`` preset binned 4 x 4 (true rig) the plain fit's radius was off by +9.5 um and
+its centre's z by -12.3 um (18 sigma); the fit through the model by +0.4 and -0.4 um
+(z 0.3), s^2 = 0.32 +- 0.05 px^2 for the renderer's 0.30. From the renderer's exact
+phase maps (no spread) the predicted interpolation shift matched the measured one per
+point to 0.018 um RMS for 0.61 um RMS (regression slope 1.001). Over 10 noise seeds
+(true rig) the plain fit's radius was off by +7.8 to +10.2 um (z 14-20), the model's
+by -4.1 to +4.3 um; its z-scores' RMS was 0.83 and 1.02 for the centre's x and y but
+1.74 and 1.73 for its z and the radius (2 seeds of 10 at |z| 3.1-3.6), and s^2 scattered
+by 0.075 px^2 for a predicted 0.05: the fit's covariance understates the parameters
+that trade against s^2. One known cause: neighbouring matches interpolate the same
+pixels of the second camera, so their noise is correlated (residual correlation 0.16 at
+one pixel along the epipolar lines), which the fit treats as independent.
 """
 
 from __future__ import annotations
@@ -57,12 +73,20 @@ class SpreadModel:
     Attributes
     ----------
     variance_px2 : float, s^2, the point spread's variance per axis (camera pixels^2:
-        the pixel's own 1/12 plus the lens's defocus), estimated from the sphere or given.
+        the pixel's own 1/12 plus the lens's defocus), estimated from the sphere or given;
+        of the first camera on a two-camera rig.
     sigma_variance_px2 : float, its standard uncertainty (0 when given).
     estimated : bool, s^2 was estimated from the sphere's points.
     brightness : bool, the brightness-gradient term was modelled (an image was given);
         without it only the curvature term is.
-    max_view_deg : float, the points fitted face the camera within this angle.
+    max_view_deg : float, the points fitted face the camera (both cameras) within this
+        angle.
+    cameras : int, 1 (camera + projector) or 2 (two cameras matched on the projector's
+        phase, :func:`stereo_spread_shift`).
+    variance_2_px2, sigma_variance_2_px2 : float or None, the second camera's s^2 and its
+        uncertainty (two cameras; equal to the first's when ``shared``).
+    shared : bool, two cameras: one s^2 for both (the data did not tell them apart, or
+        it was asked for).
     """
 
     variance_px2: float
@@ -70,6 +94,18 @@ class SpreadModel:
     estimated: bool
     brightness: bool
     max_view_deg: float
+    cameras: int = 1
+    variance_2_px2: float | None = None
+    sigma_variance_2_px2: float | None = None
+    shared: bool = False
+
+    @property
+    def variances(self) -> tuple[float, ...]:
+        """The model's variance parameters (px^2): (s^2,) for one camera or a shared one,
+        (s_1^2, s_2^2) for two cameras fitted apart."""
+        if self.cameras == 1 or self.shared:
+            return (self.variance_px2,)
+        return (self.variance_px2, float(self.variance_2_px2))
 
 
 @dataclass(frozen=True, eq=False)
@@ -253,8 +289,10 @@ class SphereMeasurement:
         :func:`telefringe.metrology.uncertainty.sphere_uncertainty`; None until then).
     spread : SpreadModel or None, the camera point-spread model the sphere was fitted
         through (None: a plain fit of the points, see :func:`measure_sphere`).
-    spread_terms : (rows, cols, 2) or None, per fitted pixel the model's shift
-        coefficients (a1 mm/px^2, a2 mm/px^4 of :func:`spread_shift`), NaN elsewhere.
+    spread_terms : (rows, cols, 2) or (rows, cols, 5) or None, per fitted pixel the
+        model's shift coefficients: one camera (a1 mm/px^2, a2 mm/px^4 of
+        :func:`spread_shift`), two cameras (a_1, b_1, a_2, b_2, c of
+        :func:`stereo_spread_shift`); NaN elsewhere.
     """
 
     sphere: SphereFit
@@ -268,7 +306,8 @@ class SphereMeasurement:
 
 def measure_sphere(cloud: PointCloud, *, min_height: float | None = None,
                    edge_px: int = 1, seed: int = 0, rig=None, image=None,
-                   fringe_periods=None, psf_variance: float | None = None,
+                   image_2=None, fringe_periods=None, psf_variance=None,
+                   psf_shared: bool | None = None,
                    max_view_deg: float = SPREAD_MAX_VIEW_DEG) -> SphereMeasurement:
     """Find and fit the sphere standing on a plane in a scan.
 
@@ -287,18 +326,34 @@ def measure_sphere(cloud: PointCloud, *, min_height: float | None = None,
     Without them the points are fitted as they are: on a rig whose camera blurs, the
     radius and centre then carry a bias of the order of s^2 / R (see the module notes).
 
+    With a two-camera ``rig`` (the cloud matched by
+    :func:`telefringe.reconstruction.stereo.match_stereo`, on the first camera's grid),
+    ``image`` the first camera's brightness and ``image_2`` the second's (in its own
+    pixels), the points move by the shift :func:`stereo_spread_shift` predicts: each
+    camera's phase biased by its own spread, and the second camera's sub-pixel
+    interpolation; the points must face both cameras within ``max_view_deg``. Each
+    camera's variance is estimated (``psf_shared=None``: when the two estimates agree
+    within 3 sigma of their difference, one shared variance is fitted instead, which the
+    result's ``spread.shared`` says; True or False imposes either).
+
     Parameters
     ----------
     cloud : PointCloud (mm).
     min_height, edge_px, seed : see above (mm, px, the plane fit's seed).
-    rig : Rig or RigCalibration, optional, one camera and a projector.
+    rig : Rig or RigCalibration, optional, one camera and a projector, or two cameras
+        and the projector (its model traces the projector coordinates the cameras see:
+        a two-camera rig needs the projector calibrated too).
     image : (rows, cols) array_like, optional, the brightness of the scene in the
         camera's pixels (e.g. points.npz ``radiance``, the fringes' mean level).
+    image_2 : (rows_2, cols_2) array_like, the second camera's brightness (two cameras).
     fringe_periods : (2,) projector px, optional, the finest u and v fringe periods
         (the second-order term of :func:`spread_shift`; without it the radius stays
         biased by about half of s^2 / R, s in mm on the object: 0.8 um on the mixed rig
         binned 4 x 4).
-    psf_variance : float, optional, s^2 in camera px^2 when known (else estimated).
+    psf_variance : float or (2,), optional, s^2 in camera px^2 when known (else
+        estimated): one for every camera, or one per camera of a two-camera rig.
+    psf_shared : bool or None, two cameras: one variance for both (True), one each
+        (False) or as the data decide (None).
     max_view_deg : float, deg, with the spread model: the largest angle between a
         fitted point's sphere normal and the direction back to the camera.
 
@@ -309,7 +364,8 @@ def measure_sphere(cloud: PointCloud, *, min_height: float | None = None,
     from scipy import ndimage
 
     if (rig is None) != (image is None) or (rig is None and (
-            psf_variance is not None or fringe_periods is not None)):
+            psf_variance is not None or fringe_periods is not None
+            or image_2 is not None)):
         raise MetrologyError("the point-spread model needs both the rig and the image")
     if cloud.count < 4:
         raise MetrologyError(f"the cloud has {cloud.count} valid points: no sphere")
@@ -343,19 +399,29 @@ def measure_sphere(cloud: PointCloud, *, min_height: float | None = None,
     if rig is None:
         return SphereMeasurement(fit, base, where, fitted)
     fit, fitted, spread, terms = _measure_with_spread(
-        cloud, sel, fit, rig, image, fringe_periods=fringe_periods,
-        psf_variance=psf_variance, max_view_deg=max_view_deg,
+        cloud, sel, fit, rig, image, image_2=image_2, fringe_periods=fringe_periods,
+        psf_variance=psf_variance, psf_shared=psf_shared, max_view_deg=max_view_deg,
         plane=None if base is None else (base.normal, base.offset))
     return SphereMeasurement(fit, base, where, fitted, spread=spread, spread_terms=terms)
 
 
+def _log_gradients(img):
+    """d ln(I) / d(column, row) (each (rows, cols), NaN where I <= 0)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gv, gu = np.gradient(np.log(np.where(img > 0, img, np.nan)))
+    return gu, gv
+
+
 def _measure_with_spread(cloud: PointCloud, sel, fit0: SphereFit, rig, image, *,
-                         fringe_periods, psf_variance, max_view_deg: float,
+                         fringe_periods, psf_variance, max_view_deg: float, image_2=None,
+                         psf_shared: bool | None = None,
                          max_incidence_deg: float | None = None, plane=None,
                          margin_px: float = SPREAD_MARGIN_PX, reject_k: float = 4.0,
                          rounds: int = 6):
     """The robust sphere fit through the point-spread model (:func:`measure_sphere`):
-    returns (SphereFit, fitted (rows, cols) bool, SpreadModel, terms (rows, cols, 2))."""
+    returns (SphereFit, fitted (rows, cols) bool, SpreadModel, terms (rows, cols, 2 or
+    5))."""
+    from telefringe.geometry.interpolation import bilinear
     from telefringe.reconstruction._rig import as_rig
     from telefringe.reconstruction.cloud import TriangulationError
 
@@ -363,19 +429,33 @@ def _measure_with_spread(cloud: PointCloud, sel, fit0: SphereFit, rig, image, *,
         r_ = as_rig(rig)
     except TriangulationError as exc:
         raise MetrologyError(str(exc)) from None
-    if r_.projector is None or len(r_.cameras) != 1:
+    stereo = len(r_.cameras) == 2
+    if r_.projector is None or len(r_.cameras) not in (1, 2):
         raise MetrologyError("the point-spread model of a sphere needs a rig of one camera "
-                             "and a projector")
+                             "and a projector, or of two cameras and the projector")
+    if stereo and image_2 is None:
+        raise MetrologyError("a two-camera rig's point-spread model needs the second "
+                             "camera's image (image_2)")
+    if not stereo and image_2 is not None:
+        raise MetrologyError("image_2 is the second camera's: the rig has one camera")
     img = np.asarray(image, dtype=np.float64)
     if img.shape != cloud.shape:
         raise MetrologyError(f"image has shape {img.shape}, the cloud {cloud.shape}")
     if not (np.isfinite(max_view_deg) and 0 < max_view_deg <= 90):
         raise MetrologyError(f"max_view_deg must be in (0, 90], got {max_view_deg!r}")
     free = psf_variance is None
-    if not free and not (np.isfinite(psf_variance) and psf_variance >= 0):
-        raise MetrologyError(f"psf_variance must be >= 0 (px^2), got {psf_variance!r}")
-    with np.errstate(divide="ignore", invalid="ignore"):
-        gv, gu = np.gradient(np.log(np.where(img > 0, img, np.nan)))
+    if free:
+        v0 = (0.0,) if not stereo or psf_shared else (0.0, 0.0)
+    else:
+        v0 = tuple(float(v) for v in np.atleast_1d(np.asarray(psf_variance, dtype=float)))
+        if len(v0) not in ((1, 2) if stereo else (1,)) or not all(
+                np.isfinite(v) and v >= 0 for v in v0):
+            raise MetrologyError(f"psf_variance must be >= 0 (px^2), one value"
+                                 f"{' or one per camera' if stereo else ''}, got "
+                                 f"{psf_variance!r}")
+        if stereo and psf_shared and len(v0) == 2 and v0[0] != v0[1]:
+            raise MetrologyError("psf_shared with two different given variances")
+    gu, gv = _log_gradients(img)
     rows, cols = np.nonzero(sel)
     pix = np.stack([cols, rows], axis=1).astype(np.float64)
     p = cloud.xyz[sel]
@@ -384,54 +464,95 @@ def _measure_with_spread(cloud: PointCloud, sel, fit0: SphereFit, rig, image, *,
     g = np.stack([gu[sel], gv[sel]], axis=1)
     good = np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(d), axis=1)
     both = cloud.residual is not None
+    if stereo:
+        cam1, cam2 = (r_.cameras[nm] for nm in r_.camera_names[:2])
+        img2 = np.asarray(image_2, dtype=np.float64)
+        size2 = cam2.image_size
+        if img2.ndim != 2 or (size2 is not None and img2.shape != (size2[1], size2[0])):
+            raise MetrologyError(f"image_2 has shape {img2.shape}, the second camera "
+                                 f"{None if size2 is None else (size2[1], size2[0])}")
+        gu2, gv2 = _log_gradients(img2)
+        with np.errstate(invalid="ignore"):
+            u2, v2 = cam2.project(p)
+        g2 = np.stack([bilinear(gu2, u2, v2)[0], bilinear(gv2, u2, v2)[0]], axis=1)
+        good &= np.all(np.isfinite(g2), axis=1)
     cos_min = np.cos(np.radians(max_view_deg))
     lit_min = None if max_incidence_deg is None else np.cos(np.radians(max_incidence_deg))
-    x = np.array([*fit0.centre, fit0.radius, 0.0 if free else float(psf_variance)])
-    keep = fit0.inliers.copy()
-    prev = None
-    for _ in range(rounds):
-        a1, a2, ok = spread_shift(r_.camera, r_.projector, x[:3], x[3], pix, d,
-                                  grad_ln_i=np.nan_to_num(g), both_axes=both,
-                                  fringe_periods=fringe_periods, plane=plane,
-                                  margin_px=margin_px)
-        f_all, _, nn = _spread_design(p, d, a1, a2, x, False)
+
+    def terms_at(x):
+        """(T, usable) of the model at the sphere x."""
+        if stereo:
+            T, ok, view2 = stereo_spread_shift(
+                cam1, cam2, r_.projector, x[:3], x[3], pix, d, p,
+                grad_ln_i=np.nan_to_num(g), grad_ln_i_2=np.nan_to_num(g2), both_axes=both,
+                fringe_periods=fringe_periods, plane=plane, margin_px=margin_px)
+        else:
+            a1, a2, ok = spread_shift(r_.camera, r_.projector, x[:3], x[3], pix, d,
+                                      grad_ln_i=np.nan_to_num(g), both_axes=both,
+                                      fringe_periods=fringe_periods, plane=plane,
+                                      margin_px=margin_px)
+            T = np.column_stack([a1, a2])
+        _, _, nn = _design(p, d, T, x, False)
         facing = -np.sum(nn * d, axis=1) >= cos_min
+        if stereo:
+            facing &= -np.sum(nn * view2, axis=1) >= cos_min
         if lit_min is not None:
             facing &= _incidence_cos(r_.projector, p, nn) >= lit_min
-        usable = ok & good & facing
-        cand = usable & keep
-        if np.count_nonzero(cand) < 10:
-            raise MetrologyError(f"only {np.count_nonzero(cand)} points of the sphere face "
-                                 f"the camera within {max_view_deg:g} deg")
-        x, f, J = _fit_sphere_spread(p[cand], d[cand], a1[cand], a2[cand], x[:3], x[3],
-                                     x[4], free)
-        f_all, _, _ = _spread_design(p, d, a1, a2, x, False)
-        scale = _MAD * np.median(np.abs(f)) + 1e-15
-        new_keep = np.abs(f_all) <= reject_k * scale
-        state = (new_keep & usable).tobytes()
-        if prev is not None and state == prev:
-            break
-        prev = state
-        keep = new_keep
-    used = cand
-    if not (np.isfinite(x[3]) and x[3] > 0 and np.all(np.isfinite(x[:3]))):
-        raise MetrologyError("the sphere fit through the point-spread model did not converge")
-    dof = max(f.size - J.shape[1], 1)
-    s2r = float(f @ f / dof)
-    try:
-        cov5 = s2r * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        raise MetrologyError("the sphere is not determined by these points") from None
-    cov = cov5[:4, :4]
+        return T, ok & good & facing
+
+    def robust(x, keep):
+        prev = None
+        for _ in range(rounds):
+            T, usable = terms_at(x)
+            cand = usable & keep
+            if np.count_nonzero(cand) < 10:
+                raise MetrologyError(f"only {np.count_nonzero(cand)} points of the sphere "
+                                     f"face the camera{'s' if stereo else ''} within "
+                                     f"{max_view_deg:g} deg")
+            x, f, J = _fit_sphere_spread(p[cand], d[cand], T[cand], x, free)
+            f_all, _, _ = _design(p, d, T, x, False)
+            scale = _MAD * np.median(np.abs(f)) + 1e-15
+            new_keep = np.abs(f_all) <= reject_k * scale
+            state = (new_keep & usable).tobytes()
+            if prev is not None and state == prev:
+                break
+            prev = state
+            keep = new_keep
+        if not (np.isfinite(x[3]) and x[3] > 0 and np.all(np.isfinite(x[:3]))):
+            raise MetrologyError("the sphere fit through the point-spread model did not "
+                                 "converge")
+        dof = max(f.size - J.shape[1], 1)
+        try:
+            cov = float(f @ f / dof) * np.linalg.inv(J.T @ J)
+        except np.linalg.LinAlgError:
+            raise MetrologyError("the sphere is not determined by these points") from None
+        return x, f, cov, T, cand, keep
+
+    x = np.array([*fit0.centre, fit0.radius, *v0])
+    x, f, cov, T, used, keep = robust(x, fit0.inliers.copy())
+    shared = not stereo or len(x) == 5
+    if stereo and free and psf_shared is None:
+        # the data decide: one variance when the two cameras' agree within 3 sigma
+        dv = x[4] - x[5]
+        s_dv = np.sqrt(max(cov[4, 4] + cov[5, 5] - 2.0 * cov[4, 5], 0.0))
+        if abs(dv) <= 3.0 * s_dv:
+            x, f, cov, T, used, keep = robust(
+                np.array([*x[:4], 0.5 * (x[4] + x[5])]), keep)
+            shared = True
     sphere = SphereFit(x[:3].copy(), float(x[3]), float(np.sqrt(np.mean(f * f))),
-                       float(f.max() - f.min()), int(p.shape[0]), int(f.size), used, cov)
-    spread = SpreadModel(float(x[4]), float(np.sqrt(cov5[4, 4])) if free else 0.0, free,
-                         True, float(max_view_deg))
+                       float(f.max() - f.min()), int(p.shape[0]), int(f.size), used,
+                       cov[:4, :4])
+    sig = np.sqrt(np.diag(cov))[4:] if free else np.zeros(len(x) - 4)
+    k2 = 4 if shared else 5
+    spread = SpreadModel(float(x[4]), float(sig[0]), free, True, float(max_view_deg),
+                         cameras=2 if stereo else 1,
+                         variance_2_px2=float(x[k2]) if stereo else None,
+                         sigma_variance_2_px2=float(sig[k2 - 4]) if stereo else None,
+                         shared=bool(stereo and shared))
     fitted = np.zeros(cloud.shape, dtype=bool)
     fitted[sel] = used
-    terms = np.full(cloud.shape + (2,), np.nan)
-    terms[rows[used], cols[used], 0] = a1[used]
-    terms[rows[used], cols[used], 1] = a2[used]
+    terms = np.full(cloud.shape + (T.shape[1],), np.nan)
+    terms[rows[used], cols[used]] = T[used]
     return sphere, fitted, spread, terms
 
 
@@ -456,6 +577,71 @@ def _line_sphere(o, d, c, r):
     disc = b * b - (np.sum(oc * oc, axis=-1) - r * r)
     with np.errstate(invalid="ignore"):
         return np.where(disc >= 0, -b - np.sqrt(np.where(disc >= 0, disc, 0.0)), np.nan)
+
+
+def _phase_stencil(camera, projector, centre, radius: float, pixels, view, *,
+                   grad_ln_i=None, n_axes: int = 2, fringe_periods=None, plane=None,
+                   margin_px: float = 0.0):
+    """The projector coordinates a camera's pixels see on a sphere, traced on a 3 x 3
+    stencil of +- ``_SPREAD_STEP_PX`` around each pixel (the shared part of
+    :func:`spread_shift` and :func:`stereo_spread_shift`).
+
+    Returns a dict: ``X`` (n, 3) mm, the point each pixel's line meets first; ``d``
+    (n, 3) its unit line direction, into the scene (along ``view``); ``ok`` (n,) bool;
+    and per axis k (0: u, 1: v, the first ``n_axes``) ``first[k]`` = tr(H) / 2 + b . g
+    (projector px per px^2) and ``second[k]`` = (b' H b - k_f^2 g' H g) / 2 (projector
+    px per px^4), ``grad[k]`` (n, 2) = g (projector px per camera px) and ``hess[k]``
+    (n, 3) = (H_uu, H_vv, H_uv), so that the decoded coordinate of a point spread of
+    variance s^2 is u + s^2 first + s^4 second.
+    """
+    pix = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    n = pix.shape[0]
+    h = _SPREAD_STEP_PX
+    offs = np.array([[0, 0], [h, 0], [-h, 0], [0, h], [0, -h], [h, h], [-h, -h], [h, -h],
+                     [-h, h]], dtype=np.float64)
+    m = offs.shape[0]
+    if margin_px > 0:
+        ang = np.arange(8) * (np.pi / 4)
+        offs = np.concatenate([offs, margin_px * np.stack([np.cos(ang), np.sin(ang)], 1)])
+    uu = pix[:, :1] + offs[:, 0]
+    vv = pix[:, 1:] + offs[:, 1]
+    mt = offs.shape[0]
+    rays = camera.backproject(uu, vv)
+    o = np.broadcast_to(np.asarray(rays.origin, dtype=np.float64), (n, mt, 3))
+    d = np.broadcast_to(np.asarray(rays.direction, dtype=np.float64), (n, mt, 3))
+    vw = np.broadcast_to(np.asarray(view, dtype=np.float64), (n, 3))
+    sgn = np.where(np.sum(d[:, 0] * vw, axis=1) < 0, -1.0, 1.0)
+    d = d * sgn[:, None, None]
+    t = _line_sphere(o, d, np.asarray(centre, dtype=np.float64), float(radius))
+    X = o + d * np.nan_to_num(t)[..., None]
+    if plane is not None:
+        nrm, off = np.asarray(plane[0], dtype=np.float64), float(plane[1])
+        t = np.where(X @ nrm - off > 0, t, np.nan)
+    ok = np.all(np.isfinite(t), axis=1)
+    d, X = d[:, :m], X[:, :m]
+    UV = projector.project(X.reshape(-1, 3))
+    b = (np.zeros((n, 2)) if grad_ln_i is None
+         else np.asarray(grad_ln_i, dtype=np.float64).reshape(n, 2))
+    out = {"X": X[:, 0], "d": d[:, 0], "ok": ok, "first": [], "second": [], "grad": [],
+           "hess": []}
+    for k in range(n_axes):
+        S = np.asarray(UV[k], dtype=np.float64).reshape(n, m)
+        gx = (S[:, 1] - S[:, 2]) / (2 * h)
+        gy = (S[:, 3] - S[:, 4]) / (2 * h)
+        hxx = (S[:, 1] + S[:, 2] - 2 * S[:, 0]) / (h * h)
+        hyy = (S[:, 3] + S[:, 4] - 2 * S[:, 0]) / (h * h)
+        hxy = (S[:, 5] + S[:, 6] - S[:, 7] - S[:, 8]) / (4 * h * h)
+        first = 0.5 * (hxx + hyy) + b[:, 0] * gx + b[:, 1] * gy
+        second = 0.5 * (b[:, 0] ** 2 * hxx + 2 * b[:, 0] * b[:, 1] * hxy + b[:, 1] ** 2 * hyy)
+        if fringe_periods is not None:
+            kf = 2 * np.pi / float(fringe_periods[k])
+            second = second - 0.5 * kf * kf * (gx * gx * hxx + 2 * gx * gy * hxy
+                                               + gy * gy * hyy)
+        out["first"].append(first)
+        out["second"].append(second)
+        out["grad"].append(np.stack([gx, gy], axis=1))
+        out["hess"].append(np.stack([hxx, hyy, hxy], axis=1))
+    return out
 
 
 def spread_shift(camera, projector, centre, radius: float, pixels, view, *,
@@ -505,57 +691,21 @@ def spread_shift(camera, projector, centre, radius: float, pixels, view, *,
     ok : (n,) bool, every traced line of the pixel (and of its margin) met the
         visible sphere.
     """
-    pix = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-    n = pix.shape[0]
-    h = _SPREAD_STEP_PX
-    offs = np.array([[0, 0], [h, 0], [-h, 0], [0, h], [0, -h], [h, h], [-h, -h], [h, -h],
-                     [-h, h]], dtype=np.float64)
-    m = offs.shape[0]
-    if margin_px > 0:
-        ang = np.arange(8) * (np.pi / 4)
-        offs = np.concatenate([offs, margin_px * np.stack([np.cos(ang), np.sin(ang)], 1)])
-    uu = pix[:, :1] + offs[:, 0]
-    vv = pix[:, 1:] + offs[:, 1]
-    mt = offs.shape[0]
-    rays = camera.backproject(uu, vv)
-    o = np.broadcast_to(np.asarray(rays.origin, dtype=np.float64), (n, mt, 3))
-    d = np.broadcast_to(np.asarray(rays.direction, dtype=np.float64), (n, mt, 3))
-    vw = np.broadcast_to(np.asarray(view, dtype=np.float64), (n, 3))
-    sgn = np.where(np.sum(d[:, 0] * vw, axis=1) < 0, -1.0, 1.0)
-    d = d * sgn[:, None, None]
-    t = _line_sphere(o, d, np.asarray(centre, dtype=np.float64), float(radius))
-    X = o + d * np.nan_to_num(t)[..., None]
-    if plane is not None:
-        nrm, off = np.asarray(plane[0], dtype=np.float64), float(plane[1])
-        t = np.where(X @ nrm - off > 0, t, np.nan)
-    ok = np.all(np.isfinite(t), axis=1)
-    o, d, X = o[:, :m], d[:, :m], X[:, :m]
+    st = _phase_stencil(camera, projector, centre, radius, pixels, view,
+                        grad_ln_i=grad_ln_i, n_axes=2 if both_axes else 1,
+                        fringe_periods=fringe_periods, plane=plane, margin_px=margin_px)
+    X0, d0, ok = st["X"], st["d"], st["ok"]
+    n = X0.shape[0]
     eps = 1e-3  # mm along the centre line
-    X0 = X[:, 0]
-    Xs = np.concatenate([X.reshape(-1, 3), X0 + eps * d[:, 0], X0 - eps * d[:, 0]])
-    UV = projector.project(Xs)
-    b = (np.zeros((n, 2)) if grad_ln_i is None
-         else np.asarray(grad_ln_i, dtype=np.float64).reshape(n, 2))
+    UV = projector.project(np.concatenate([X0 + eps * d0, X0 - eps * d0]))
     num1 = np.zeros(n)
     num2 = np.zeros(n)
     den = np.zeros(n)
-    for k in range(2 if both_axes else 1):
+    for k in range(len(st["first"])):
         P = np.asarray(UV[k], dtype=np.float64)
-        S = P[:m * n].reshape(n, m)
-        p_t = (P[m * n:(m + 1) * n] - P[(m + 1) * n:]) / (2 * eps)
-        gx = (S[:, 1] - S[:, 2]) / (2 * h)
-        gy = (S[:, 3] - S[:, 4]) / (2 * h)
-        hxx = (S[:, 1] + S[:, 2] - 2 * S[:, 0]) / (h * h)
-        hyy = (S[:, 3] + S[:, 4] - 2 * S[:, 0]) / (h * h)
-        hxy = (S[:, 5] + S[:, 6] - S[:, 7] - S[:, 8]) / (4 * h * h)
-        first = 0.5 * (hxx + hyy) + b[:, 0] * gx + b[:, 1] * gy
-        second = 0.5 * (b[:, 0] ** 2 * hxx + 2 * b[:, 0] * b[:, 1] * hxy + b[:, 1] ** 2 * hyy)
-        if fringe_periods is not None:
-            kf = 2 * np.pi / float(fringe_periods[k])
-            second = second - 0.5 * kf * kf * (gx * gx * hxx + 2 * gx * gy * hxy
-                                               + gy * gy * hyy)
-        num1 += p_t * first
-        num2 += p_t * second
+        p_t = (P[:n] - P[n:]) / (2 * eps)
+        num1 += p_t * st["first"][k]
+        num2 += p_t * st["second"][k]
         den += p_t * p_t
     with np.errstate(invalid="ignore", divide="ignore"):
         a1 = num1 / den
@@ -564,35 +714,168 @@ def spread_shift(camera, projector, centre, radius: float, pixels, view, *,
     return np.where(ok, a1, 0.0), np.where(ok, a2, 0.0), ok
 
 
-def _spread_design(p, d, a1, a2, x, free: bool):
-    """Residuals |p_i - shift_i d_i - c| - r (shift_i = s2 a1_i + s2^2 a2_i), their
-    Jacobian (n, 4 or 5) in (cx, cy, cz, r[, s2]) and the unit normals (n, 3)."""
-    s2 = x[4]
-    q = p - (s2 * a1 + s2 * s2 * a2)[:, None] * d
+def stereo_spread_shift(camera, camera_2, projector, centre, radius: float, pixels,
+                        view, points, *, grad_ln_i=None, grad_ln_i_2=None,
+                        both_axes: bool = True, fringe_periods=None, plane=None,
+                        margin_px: float = 0.0, max_gap_mm: float | None = None):
+    """Shift of each matched point along the first camera's line predicted by the two
+    cameras' point spreads (and the sub-pixel interpolation of the second camera's
+    phase), for a sphere seen by a two-camera rig whose projector gives the phase.
+
+    Each camera decodes the projector coordinate its pixel sees, biased by its own point
+    spread (``s_1^2``, ``s_2^2``, camera px^2, each over its own image and brightness)
+    as in :func:`spread_shift`: ``delta_c = s_c^2 first_c + s_c^4 second_c`` (projector
+    px, traced on each camera's stencil). The stereo match (``reconstruction.stereo``)
+    moves along the first camera's line to where the second camera's map, interpolated
+    bilinearly at the matched sub-pixel ``p_2``, equals the first camera's value. The
+    bilinear interpolation of a curved map adds ``e = (f_u (1 - f_u) H_uu + f_v (1 - f_v)
+    H_vv) / 2`` (``f`` the fractions of ``p_2`` within its cell, ``H`` the map's Hessian
+    per camera px^2; exact for a quadratic map). With ``g`` the second camera's map's
+    derivative along the first camera's line (projector px per mm), the point moves by
+
+        dt = sum_axes g (delta_1 - delta_2 - e) / sum_axes g^2
+
+    (equal weights of the axes in projector pixels, as :func:`spread_shift`).
+
+    Parameters
+    ----------
+    camera, camera_2, projector : the rig's devices (Device protocol); the projector's
+        model traces the projector coordinates (its calibration, or the nominal one).
+    centre : (3,) mm; radius : mm, the sphere.
+    pixels : (n, 2) the first camera's pixels (column, row).
+    view : (n, 3) or (3,), the first camera's viewing directions (into the scene).
+    points : (n, 3) mm, the matched points (the cloud's): the second camera's pixel
+        ``p_2`` is their projection (where the matcher interpolated).
+    grad_ln_i, grad_ln_i_2 : (n, 2) 1/px, optional, the brightness gradients of each
+        camera's image at ``pixels`` and at ``p_2``.
+    both_axes, fringe_periods, plane, margin_px : as :func:`spread_shift` (the margin
+        around both cameras' pixels).
+    max_gap_mm : float, optional, the second camera's line through ``p_2`` must meet the
+        sphere within this of the first camera's point (default: radius / 100); a point
+        the second camera sees on another part of the sphere is not described.
+
+    Returns
+    -------
+    terms : (n, 5): (a_1, b_1, a_2, b_2, c) with the shift away from the first camera
+        ``s_1^2 a_1 + s_1^4 b_1 + s_2^2 a_2 + s_2^4 b_2 + c`` (mm / px^2, mm / px^4 and
+        mm), zeros where not ok.
+    ok : (n,) bool, every traced line of both cameras met the visible sphere there.
+    view_2 : (n, 3) the second camera's unit viewing directions at ``p_2`` (into the
+        scene), for the caller's facing test.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = pts.shape[0]
+    n_axes = 2 if both_axes else 1
+    st1 = _phase_stencil(camera, projector, centre, radius, pixels, view,
+                         grad_ln_i=grad_ln_i, n_axes=n_axes, fringe_periods=fringe_periods,
+                         plane=plane, margin_px=margin_px)
+    with np.errstate(invalid="ignore"):
+        u2, v2 = camera_2.project(pts)
+    p2 = np.stack([np.asarray(u2, dtype=np.float64).reshape(n),
+                   np.asarray(v2, dtype=np.float64).reshape(n)], axis=1)
+    fin = np.all(np.isfinite(p2), axis=1)
+    p2s = np.where(fin[:, None], p2, 0.0)
+    view2 = np.asarray(camera_2.R_dev_world, dtype=np.float64)[2]  # device z: the view
+    st2 = _phase_stencil(camera_2, projector, centre, radius, p2s, view2,
+                         grad_ln_i=grad_ln_i_2, n_axes=n_axes, fringe_periods=fringe_periods,
+                         plane=plane, margin_px=margin_px)
+    gap = np.linalg.norm(st2["X"] - st1["X"], axis=1)
+    tol = float(radius) / 100.0 if max_gap_mm is None else float(max_gap_mm)
+    ok = st1["ok"] & st2["ok"] & fin & (gap <= tol)
+    # the second camera's pixel moves along its epipolar line: dp_2 / dt = J_2 d_1
+    _, _, J2 = camera_2.project_jacobian(np.where(ok[:, None], st1["X"], pts))
+    dp = np.einsum("mij,mj->mi", np.asarray(J2, dtype=np.float64), st1["d"])
+    fu = p2s[:, 0] - np.floor(p2s[:, 0])
+    fv = p2s[:, 1] - np.floor(p2s[:, 1])
+    num = np.zeros((n, 5))
+    den = np.zeros(n)
+    for k in range(n_axes):
+        g = np.sum(st2["grad"][k] * dp, axis=1)
+        hs = st2["hess"][k]
+        e = 0.5 * (fu * (1 - fu) * hs[:, 0] + fv * (1 - fv) * hs[:, 1])
+        num += g[:, None] * np.stack([st1["first"][k], st1["second"][k], -st2["first"][k],
+                                      -st2["second"][k], -e], axis=1)
+        den += g * g
+    with np.errstate(invalid="ignore", divide="ignore"):
+        terms = num / den[:, None]
+    ok &= np.all(np.isfinite(terms), axis=1)
+    return np.where(ok[:, None], terms, 0.0), ok, st2["d"]
+
+
+def _shift_and_slopes(T, v, free: bool):
+    """The point-spread shift (n,) of the terms ``T`` (n, 2): (a1, a2) of one camera, or
+    (n, 5): (a_1, b_1, a_2, b_2, c) of two (:func:`stereo_spread_shift`), for the
+    variances ``v`` (one, or one per camera of a two-camera rig), and its derivatives
+    (n, len(v)) by them (None when not ``free``)."""
+    if T.shape[1] == 2:
+        v1 = v[0]
+        sh = v1 * T[:, 0] + v1 * v1 * T[:, 1]
+        return sh, (T[:, :1] + 2.0 * v1 * T[:, 1:2]) if free else None
+    v1, v2 = (v[0], v[0]) if len(v) == 1 else (v[0], v[1])
+    sh = v1 * T[:, 0] + v1 * v1 * T[:, 1] + v2 * T[:, 2] + v2 * v2 * T[:, 3] + T[:, 4]
+    if not free:
+        return sh, None
+    d1 = T[:, 0] + 2.0 * v1 * T[:, 1]
+    d2 = T[:, 2] + 2.0 * v2 * T[:, 3]
+    return sh, (d1 + d2)[:, None] if len(v) == 1 else np.stack([d1, d2], axis=1)
+
+
+def _design(p, d, T, x, free: bool):
+    """Residuals |p_i - shift_i d_i - c| - r of the points moved back along their lines
+    by the point-spread shift of the terms ``T`` (:func:`_shift_and_slopes`), their
+    Jacobian (n, 4, or 4 + the variances when ``free``) in (cx, cy, cz, r[, v...]) and the
+    unit normals (n, 3); ``x`` = (cx, cy, cz, r, v...)."""
+    sh, dv = _shift_and_slopes(T, x[4:], free)
+    q = p - sh[:, None] * d
     v = q - x[:3]
     dist = np.linalg.norm(v, axis=1)
     nn = v / dist[:, None]
-    J = np.empty((p.shape[0], 5 if free else 4))
+    J = np.empty((p.shape[0], x.size if free else 4))
     J[:, :3] = -nn
     J[:, 3] = -1.0
     if free:
-        J[:, 4] = -np.sum(nn * d, axis=1) * (a1 + 2.0 * s2 * a2)
+        J[:, 4:] = -np.sum(nn * d, axis=1)[:, None] * dv
     return dist - x[3], J, nn
 
 
-def _fit_sphere_spread(p, d, a1, a2, c0, r0, s2_0: float, free: bool, max_iter: int = 50):
+def spread_design(measurement, points, directions):
+    """The design of a sphere fitted through a point-spread model, for linearising it
+    (:func:`telefringe.metrology.uncertainty.sphere_uncertainty`).
+
+    Parameters
+    ----------
+    measurement : SphereMeasurement with ``spread`` set.
+    points : (n, 3) mm, the cloud's points at ``measurement.fitted``; directions : (n, 3)
+        their first camera's viewing directions.
+
+    Returns
+    -------
+    J : (n, 4 + estimated variances) d residual / d (cx, cy, cz, r[, v...]).
+    normals : (n, 3) unit.
+    """
+    sp = measurement.spread
+    f = measurement.sphere
+    T = np.asarray(measurement.spread_terms)[np.asarray(measurement.fitted, dtype=bool)]
+    x = np.array([*f.centre, f.radius, *sp.variances])
+    _, J, nn = _design(np.asarray(points, dtype=np.float64),
+                       np.asarray(directions, dtype=np.float64), T, x, sp.estimated)
+    return J, nn
+
+
+def _fit_sphere_spread(p, d, T, x0, free: bool, max_iter: int = 50):
     """Gauss-Newton for the sphere on which the points, moved back along their lines
-    ``d`` by the point-spread shift ``s2 a1 + s2^2 a2``, lie: s2 free (from ``s2_0``) or
-    fixed at ``s2_0``. Returns (x = (cx, cy, cz, r, s2), residuals (n,), Jacobian)."""
-    x = np.array([c0[0], c0[1], c0[2], r0, float(s2_0)])
-    npar = 5 if free else 4
+    ``d`` by the point-spread shift of the terms ``T`` (:func:`_shift_and_slopes`), lie;
+    the variances x0[4:] free or fixed. Returns (x = (cx, cy, cz, r, v...), residuals
+    (n,), Jacobian)."""
+    x = np.array(x0, dtype=np.float64)
+    npar = x.size if free else 4
     for _ in range(max_iter):
-        f, J, _ = _spread_design(p, d, a1, a2, x, free)
+        f, J, _ = _design(p, d, T, x, free)
         step = np.linalg.lstsq(J, -f, rcond=None)[0]
         x[:npar] += step
         if np.all(np.abs(step[:4]) < 1e-12 * max(1.0, abs(x[3]))):
             break
-    f, J, _ = _spread_design(p, d, a1, a2, x, free)
+    f, J, _ = _design(p, d, T, x, free)
     return x, f, J
 
 

@@ -353,14 +353,11 @@ def sphere_uncertainty(measurement, cloud, calibration, *, weight_v=None):
     else:
         # the fit through the point-spread model: its residuals' design, with the spread's
         # variance a parameter when it was estimated (the points move the estimate too)
-        from telefringe.metrology.spheres import _spread_design
+        from telefringe.metrology.spheres import spread_design
 
-        T = np.asarray(m.spread_terms)[sel]
         dirs = cloud.directions
         dv = np.broadcast_to(dirs, pts.shape) if dirs.ndim == 1 else dirs[sel]
-        x = np.array([*f.centre, f.radius, spread.variance_px2])
-        _, J, uvec = _spread_design(pts, dv, T[:, 0], T[:, 1], x, spread.estimated)
-        a = J
+        a, uvec = spread_design(m, pts, dv)
     Ninv = np.linalg.inv(a.T @ a)
     G = (-(a @ Ninv.T)[:, :, None] * uvec[:, None, :])[:, :4]  # (n, 4, 3): (c, R)
     J = sum_point_jacobian(calibration, pts, G, weight_v=wv)

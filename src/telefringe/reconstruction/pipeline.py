@@ -9,11 +9,10 @@ import numpy as np
 from telefringe.devices.rig import Rig
 from telefringe.fringes.images import radiance_image, scan_radiance
 from telefringe.fringes.scan import PhaseGroup
-from telefringe.reconstruction import generic, telecentric
+from telefringe.reconstruction import telecentric
 from telefringe.reconstruction._rig import as_rig as _as_rig
 from telefringe.reconstruction.cloud import PointCloud, TriangulationError
 from telefringe.reconstruction.heightmap import HeightMap, height_map
-from telefringe.reconstruction.stereo import match_stereo
 
 __all__ = ["Reconstruction", "reconstruct_scan", "reconstruct_stereo_scans", "triangulate"]
 
@@ -33,7 +32,12 @@ def triangulate(rig, coords, *, max_residual: float | None = 1.0,
     rig = _as_rig(rig)
     fast = (rig.projector is not None and rig.camera.model == "telecentric"
             and rig.projector.model == "telecentric")
-    fn = telecentric.triangulate if fast else generic.triangulate
+    if fast:
+        fn = telecentric.triangulate
+    else:  # imported here: a telecentric rig's command need not load it
+        from telefringe.reconstruction import generic
+
+        fn = generic.triangulate
     return fn(rig, coords, max_residual=max_residual, max_sigma_z=max_sigma_z,
               use_v_p=use_v_p, check_bounds=check_bounds)
 
@@ -170,6 +174,7 @@ def reconstruct_stereo_scans(scan_1, scan_2, rig: Rig, *, max_residual: float | 
     """
     from telefringe.fringes.decode import decode
     from telefringe.fringes.images import fringe_free_image
+    from telefringe.reconstruction.stereo import match_stereo
 
     learned = getattr(rig, "phase_errors", None)
     if learned and "phase_errors" not in decode_options:

@@ -230,18 +230,20 @@ def _plane_errors(cloud, plane: TiltedPlane):
 
 def _sphere_options(rig: Rig, scans: dict):
     """measure_sphere's point-spread options for a rig (a function of the rig measuring):
-    a camera + projector rig fits through the model with the first camera's brightness
-    (the scan's mean level) and the scan's finest fringe periods; a two-camera rig (no
-    model there yet) fits the points as they are."""
+    the first camera's brightness (the scan's mean level), for two cameras the second's
+    too, and the scan's finest fringe periods; a rig without a projector fits the points
+    as they are."""
     from telefringe.fringes.images import scan_radiance
     from telefringe.metrology.spheres import finest_fringe_periods
 
-    if len(rig.cameras) != 1 or rig.projector is None:
+    if len(rig.cameras) not in (1, 2) or rig.projector is None:
         return lambda r: {}
-    scan = scans[rig.camera_names[0]]
-    image = scan_radiance(scan)
-    periods = finest_fringe_periods(scan.manifest)
-    return lambda r: {"rig": r, "image": image, "fringe_periods": periods}
+    names = rig.camera_names
+    scan = scans[names[0]]
+    kw = {"image": scan_radiance(scan), "fringe_periods": finest_fringe_periods(scan.manifest)}
+    if len(names) == 2:
+        kw["image_2"] = scan_radiance(scans[names[1]])
+    return lambda r: {"rig": r, **kw}
 
 
 def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int = 8,
