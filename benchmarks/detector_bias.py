@@ -12,6 +12,18 @@ image through the true device (``calibration.centres.circle_image_centres``, as
 ``centre_bias="full"`` does). Printed per camera, blur and method: the mean error (u, v)
 px, its RMS, the radial scale (least-squares ``d ~ s (x - principal point)``) and the
 mean error along the marker's minor axis (the direction of the tilt) and major axis.
+
+Measured (``stereo`` binned 4, markers a = 5.6 px, noise-free, model fit): RMS per circle
+0.0044 px at blur 0.5 (0.0070 at 0, 0.0040 at 1); mean over the poses below 0.0007 px,
+radial scale below 3e-6. With the renderer's edge sub-sampling raised from 7 to 21 (49)
+the RMS falls to 0.0028 (0.0027) px: about 0.0034 px of the 0.0044 is the renderer's
+7 x 7 midpoint integration of edge pixels, the rest the fit's own. Means per pose reach
+0.0015 px (the same at 21 and 49 sub-samples, and 4x larger with ``edge``), which the
+calibration feels (camera parameters' chi2 54-56 on 24 against 23-31 with white noise of
+the same RMS); their cause is not found yet (not the fit window: re-selecting it around
+the fitted ellipse changes nothing; not the illumination gradient, whose part
+``-sigma^2 grad ln b`` the model now includes). With the rig's noise the detected centres
+are 0.0052 px RMS from the truth.
 """
 
 from __future__ import annotations
