@@ -38,6 +38,11 @@ interpolated variance ``sum w_i^2 sigma_i^2`` of the four neighbours' (bilinear 
 w_i); with both axes ``sigma_s^{-2} = sum_axes (du_P2/ds)^2 / (sigma_1^2 + sigma_2^2)``.
 The point moves along the first camera's line: ``sigma_line = sigma_s``.
 
+Neighbouring points' errors are correlated: the matches of neighbouring pixels of the
+first camera interpolate the same pixels of the second (:func:`match_noise` gives each
+point's error as its own part plus weighted shares of the second camera's pixels'
+independent noise, from which a fit builds the exact covariance of its points).
+
 Engines: the compiled matcher (:mod:`telefringe.reconstruction._stereo_kernels`, numba,
 parallel over the first camera's rows) runs the same samples, brackets and iterations per
 pixel for a pinhole or telecentric second camera; where a line leaves the second camera's
@@ -75,7 +80,8 @@ from telefringe.reconstruction.cloud import (
 )
 from telefringe.reconstruction.generic import safe_backproject, working_point
 
-__all__ = ["StereoMatch", "match_stereo", "triangulate_stereo", "search_range", "stereo_rig"]
+__all__ = ["StereoMatch", "StereoNoise", "match_stereo", "match_noise", "triangulate_stereo",
+           "search_range", "stereo_rig"]
 
 _CHUNK = 4096
 _TOL_F = 1e-9  # projector px
@@ -99,6 +105,32 @@ class StereoMatch:
     cloud: PointCloud
     u2: np.ndarray
     v2: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class StereoNoise:
+    """The matched points' errors along the first camera's lines, as independent parts
+    (:func:`match_noise`): the error of the point at a pixel is
+
+        delta_s = e + sum_q weights[..., q] z[sources[..., q]]
+
+    with ``e`` the first camera's own part (independent per point, variance ``var_own``)
+    and ``z`` independent unit-variance sources, one per pixel and axis of the second
+    camera, shared by every match whose bilinear cell reads that pixel. The covariance of
+    two points is ``delta_kl var_own_k + sum over their common sources of the weights'
+    products``; ``var_own + sum_q weights^2`` is the cloud's ``sigma^2``.
+
+    Attributes
+    ----------
+    var_own : (rows, cols) mm^2, NaN where the cloud has no point.
+    weights : (rows, cols, K) mm per unit source (K = 4 per axis matched), 0 where none.
+    sources : (rows, cols, K) int64, ``axis * pixels_2 + row_2 * cols_2 + col_2`` (axis 0
+        the primary, 1 the other), -1 where none.
+    """
+
+    var_own: np.ndarray
+    weights: np.ndarray
+    sources: np.ndarray
 
 
 def _two_cameras(rig) -> tuple:
@@ -501,6 +533,82 @@ def _match_compiled(cam1, cam2, shape1, m1, m2, primary, other, combine, P0, off
                               None if other is None else res.reshape(shp),
                               flags.reshape(shp), _readonly(dirs))
     return StereoMatch(cloud, _readonly(u2.reshape(shp)), _readonly(v2.reshape(shp)))
+
+
+def match_noise(rig, coords_1, coords_2, match: StereoMatch, *,
+                use_v_p: bool = True) -> StereoNoise:
+    """The matched points' errors split into the first camera's own part and the shares
+    of the second camera's pixels (:class:`StereoNoise`), for the covariance of
+    neighbouring points.
+
+    At each valid point of ``match`` (from :func:`match_stereo` with the same arguments):
+    the point moves along the first camera's line by ``delta_s = sum_axes c_a (delta_1a -
+    sum_i w_i delta_2a,i)``, ``w_i`` the bilinear weights of the second camera's cell at
+    the matched sub-pixel, ``c_a = 1 / g_a`` with one axis and ``c_a = (g_a / V_a) /
+    sum_b (g_b^2 / V_b)`` with both (``g`` the along-line slopes, ``V`` the pair
+    variances, as the matcher weighs them), ``delta`` the decoded coordinates' errors of
+    std ``sigma_u_p`` / ``sigma_v_p`` (independent per pixel and axis).
+
+    Parameters
+    ----------
+    rig, coords_1, coords_2, use_v_p : as for :func:`match_stereo` (the coordinates need
+        their sigmas).
+    match : StereoMatch of these arguments.
+
+    Returns
+    -------
+    StereoNoise on the first camera's grid.
+    """
+    rig, cam1, cam2 = _two_cameras(rig)
+    cloud = match.cloud
+    shape1, m1 = _maps(coords_1, cloud.shape, "first camera")
+    shape2, m2 = _maps(coords_2, None, "second camera")
+    primary, other, combine = _axes(coords_1, coords_2, use_v_p)
+    axes = (primary, other) if combine else (primary,)
+    for ax in axes:
+        if m1[ax][1] is None or m2[ax][1] is None:
+            raise TriangulationError(f"the noise of the match needs sigma_{ax}_p of both "
+                                     "cameras")
+    gi = np.flatnonzero(cloud.mask.reshape(-1))
+    X = cloud.xyz.reshape(-1, 3)[gi]
+    dirs = np.asarray(cloud.directions, dtype=np.float64)
+    dd = np.broadcast_to(dirs, X.shape) if dirs.ndim == 1 else dirs.reshape(-1, 3)[gi]
+    u2 = np.asarray(match.u2, dtype=np.float64).reshape(-1)[gi]
+    v2 = np.asarray(match.v2, dtype=np.float64).reshape(-1)[gi]
+    _, _, J = cam2.project_jacobian(X)
+    dp = np.einsum("mij,mj->mi", np.asarray(J, dtype=np.float64), dd)
+    slopes, pair, own = [], [], []
+    corners = None
+    for ax in axes:
+        M2, S2 = m2[ax]
+        _, gu, gv, corners = bilinear(M2, u2, v2)
+        slopes.append(gu * dp[:, 0] + gv * dp[:, 1])
+        pair.append(_pair_var(m1[ax][1], S2, gi, corners))
+        own.append(_var_of(m1[ax][1], gi))
+    if combine:
+        info = sum(g * g / V for g, V in zip(slopes, pair, strict=True))
+        coef = [g / V / info for g, V in zip(slopes, pair, strict=True)]
+    else:
+        coef = [1.0 / slopes[0]]
+    i, j, fx, fy = corners
+    w = ((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)
+    pix = (i * shape2[1] + j, i * shape2[1] + j + 1, (i + 1) * shape2[1] + j,
+           (i + 1) * shape2[1] + j + 1)
+    n2 = shape2[0] * shape2[1]
+    K = 4 * len(axes)
+    n = cloud.mask.size
+    var_own = np.full(n, np.nan)
+    weights = np.zeros((n, K))
+    sources = np.full((n, K), -1, dtype=np.int64)
+    var_own[gi] = sum(c * c * o for c, o in zip(coef, own, strict=True))
+    for a, ax in enumerate(axes):
+        S2 = m2[ax][1].reshape(-1)
+        for q in range(4):
+            weights[gi, 4 * a + q] = -coef[a] * w[q] * S2[pix[q]]
+            sources[gi, 4 * a + q] = a * n2 + pix[q]
+    shp = cloud.shape
+    return StereoNoise(_readonly(var_own.reshape(shp)), _readonly(weights.reshape(shp + (K,))),
+                       _readonly(sources.reshape(shp + (K,))))
 
 
 def _c(x):
