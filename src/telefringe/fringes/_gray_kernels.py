@@ -107,3 +107,35 @@ def unwrap_gray_complementary(phase, images, threshold, min_contrast, bits, leng
                     if (e == 1) == bit[j]:
                         mism &= ~(np.uint64(1) << np.uint64(j))
             bad[r, c] = out or mism != 0
+
+
+# ------------------------------------------------------------- phase-shifting sums
+_CHUNK = 4096
+
+
+@nb.njit(cache=True, parallel=True)
+def phase_sums(images, sin_w, cos_w, sin2_w, cos2_w, s, c, s2, c2, a):
+    """The sums of :func:`telefringe.fringes.phase.wrapped_phase`, accumulated in place.
+
+    images : (steps, npx) DN; the weights (steps,) float64; s, c, s2, c2, a : (npx,)
+    float64, zero on entry. Each sum adds ``w_k * I_k`` for k = 0, 1, ... in that order,
+    skipping zero weights, one product and one addition per term (no FMA): the NumPy
+    loop's float64 operations, so the sums are bit-identical to it.
+    """
+    steps, npx = images.shape
+    for blk in nb.prange((npx + _CHUNK - 1) // _CHUNK):
+        lo = blk * _CHUNK
+        hi = min(lo + _CHUNK, npx)
+        for k in range(steps):
+            ws, wc, ws2, wc2 = sin_w[k], cos_w[k], sin2_w[k], cos2_w[k]
+            for i in range(lo, hi):
+                v = float(images[k, i])
+                if ws != 0.0:
+                    s[i] += ws * v
+                if wc != 0.0:
+                    c[i] += wc * v
+                if ws2 != 0.0:
+                    s2[i] += ws2 * v
+                if wc2 != 0.0:
+                    c2[i] += wc2 * v
+                a[i] += v
