@@ -93,3 +93,27 @@ def test_compiled_gray_matches_numpy_on_the_real_scan():
                         length=1920, min_contrast=mc)
     _same(got, ref)
     assert 0.9 < ref.reliable.mean() < 1.0
+
+
+def test_compiled_gray_matches_numpy_on_a_virtual_scan():
+    """A Gray-code scan rendered by the virtual rig (sphere, 4 steps x 16 periods, 4 bits
+    + complementary): the compiled path equals the NumPy one, with the white/black
+    threshold decode() uses."""
+    from telefringe.fringes.patterns import pattern_groups
+    from telefringe.fringes.phase import NoiseModel, wrapped_phase
+    from telefringe.simulate.presets import get_preset
+    from telefringe.simulate.render import render_scan
+    from telefringe.simulate.scenes import make_scene
+
+    vr = get_preset("fast")
+    groups = pattern_groups(steps=4, periods=(16,), axes=("u",), gray_bits=4)
+    scan, _ = render_scan(vr, make_scene("sphere"), groups, seed=2)
+    wp = wrapped_phase(scan.stacks[0], steps=4)
+    thr = 0.5 * (scan.white.astype(np.float64) + scan.black.astype(np.float64))
+    mc = 3.0 * np.sqrt(NoiseModel().variance(thr))
+    length = scan.manifest.projector_width
+    ref = U._unwrap_gray_numpy(wp.phase, scan.stacks[1], thr, bits=4, complementary=True,
+                               length=length, min_contrast=mc)
+    _same(U.unwrap_gray(wp.phase, scan.stacks[1], thr, bits=4, complementary=True,
+                        length=length, min_contrast=mc), ref)
+    assert 0.2 < ref.reliable.mean() < 1.0  # the sphere, and the unlit background flagged

@@ -496,6 +496,11 @@ def unwrap_gray(phase, images, threshold, *, bits: int, complementary: bool, len
     expected within 2 projector pixels of the decoded coordinate, and, for the plain code,
     near a block edge where both edge bits are unclear and alike.
 
+    The complementary code on a (rows, cols) grid with finite inputs runs as one parallel
+    numba pass (:mod:`telefringe.fringes._gray_kernels`, the same float64 operations:
+    bit-identical to the NumPy path, tests/test_gray_kernels.py); the plain code and other
+    inputs take the NumPy path.
+
     Parameters
     ----------
     phase : (rows, cols) array_like, rad, wrapped phase of the group with 2**bits periods.
