@@ -149,6 +149,13 @@ def _check_stack(images, steps: int, name: str = "images") -> np.ndarray:
     return images
 
 
+#: Image types whose sums :func:`wrapped_phase` computes in a compiled pass
+#: (:func:`telefringe.fringes._gray_kernels.phase_sums`, bit-identical to the NumPy loop),
+#: for images of at least this many pixels (smaller ones: NumPy, no compilation).
+_COMPILED_DTYPES = tuple(np.dtype(t) for t in (np.uint8, np.uint16, np.float64))
+_COMPILED_MIN_PIXELS = 1 << 16
+
+
 def wrapped_phase(images, *, steps: int, offset: float = 0.0) -> WrappedPhase:
     """Least-squares wrapped phase, modulation and background of an N-step group.
 
@@ -186,7 +193,17 @@ def wrapped_phase(images, *, steps: int, offset: float = 0.0) -> WrappedPhase:
     a = np.zeros(shape, dtype=np.float64)
     s2 = np.zeros(shape, dtype=np.float64)
     c2 = np.zeros(shape, dtype=np.float64)
-    for k in range(steps):
+    if images.dtype in _COMPILED_DTYPES and s.size >= _COMPILED_MIN_PIXELS:
+        # one parallel compiled pass, bit-identical sums (no float64 copies of the images)
+        from telefringe.fringes._gray_kernels import phase_sums
+
+        phase_sums(np.ascontiguousarray(images).reshape(steps, -1), sin_w, cos_w, sin2_w,
+                   cos2_w, s.reshape(-1), c.reshape(-1), s2.reshape(-1), c2.reshape(-1),
+                   a.reshape(-1))
+        steps_loop = 0
+    else:
+        steps_loop = steps
+    for k in range(steps_loop):
         img = images[k].astype(np.float64)
         if sin_w[k]:
             s += sin_w[k] * img

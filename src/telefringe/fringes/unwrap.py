@@ -496,6 +496,11 @@ def unwrap_gray(phase, images, threshold, *, bits: int, complementary: bool, len
     expected within 2 projector pixels of the decoded coordinate, and, for the plain code,
     near a block edge where both edge bits are unclear and alike.
 
+    The complementary code on a (rows, cols) grid with finite inputs runs as one parallel
+    numba pass (:mod:`telefringe.fringes._gray_kernels`, the same float64 operations:
+    bit-identical to the NumPy path, tests/test_gray_kernels.py); the plain code and other
+    inputs take the NumPy path.
+
     Parameters
     ----------
     phase : (rows, cols) array_like, rad, wrapped phase of the group with 2**bits periods.
@@ -515,6 +520,46 @@ def unwrap_gray(phase, images, threshold, *, bits: int, complementary: bool, len
     if imgs.ndim < 2 or imgs.shape[0] != need:
         raise ValueError(f"Gray code with {bits} bits{' + complementary' if complementary else ''}"
                          f" needs {need} images, got stack of shape {imgs.shape}")
+    if complementary and _compiled_ok(phase, imgs, threshold, min_contrast, need):
+        return _unwrap_gray_compiled(phase, imgs, threshold, bits=bits, length=length,
+                                     min_contrast=min_contrast)
+    return _unwrap_gray_numpy(phase, imgs, threshold, bits=bits, complementary=complementary,
+                              length=length, min_contrast=min_contrast)
+
+
+def _compiled_ok(phase, imgs, threshold, min_contrast, need) -> bool:
+    """The compiled complementary kernel applies: a 2-D image grid, integer or float
+    images, finite phase, threshold and min_contrast broadcastable to the image (where
+    any of them is NaN or infinite, the NumPy path keeps its own behaviour)."""
+    thr = np.asarray(threshold)
+    mc = np.asarray(min_contrast)
+    return (phase.ndim == 2 and imgs.ndim == 3 and imgs.shape[1:] == phase.shape
+            and thr.shape == phase.shape and imgs.dtype.kind in "uif" and need <= 62
+            and mc.ndim <= 2 and np.broadcast_shapes(mc.shape, phase.shape) == phase.shape
+            and bool(np.isfinite(phase).all()) and bool(np.isfinite(thr).all())
+            and bool(np.isfinite(mc).all())
+            and (imgs.dtype.kind != "f" or bool(np.isfinite(imgs).all())))
+
+
+def _unwrap_gray_compiled(phase, imgs, threshold, *, bits, length, min_contrast) -> Unwrapped:
+    """:func:`unwrap_gray` with the complementary code in one parallel numba pass
+    (:mod:`telefringe.fringes._gray_kernels`); bit-identical to :func:`_unwrap_gray_numpy`."""
+    from telefringe.fringes._gray_kernels import unwrap_gray_complementary
+
+    thr = np.ascontiguousarray(threshold, dtype=np.float64)
+    mc = np.ascontiguousarray(np.broadcast_to(np.asarray(min_contrast, dtype=np.float64),
+                                              phase.shape))
+    absolute = np.empty(phase.shape, dtype=np.float64)
+    bad = np.empty(phase.shape, dtype=bool)
+    unwrap_gray_complementary(np.ascontiguousarray(phase), np.ascontiguousarray(imgs), thr, mc,
+                              int(bits), int(length), absolute, bad)
+    return Unwrapped(phases=(absolute,), reliable=~bad, residual=bad.astype(np.float64))
+
+
+def _unwrap_gray_numpy(phase, imgs, threshold, *, bits, complementary, length,
+                       min_contrast) -> Unwrapped:
+    """:func:`unwrap_gray` in float64 NumPy (the reference of the compiled path, and the
+    plain code's implementation)."""
     code = decode_gray(imgs, threshold)
     periods = 2 ** bits
     # a bit is clear when its contrast beats the noise and a quarter of the pixel's typical
