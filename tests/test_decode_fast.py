@@ -97,6 +97,23 @@ def test_table_size_bounds_the_interpolation_error(model):
         assert np.abs(ni / exact_nf - 1).max() <= fast.TABLE_NF_TOL
 
 
+def test_table_size_without_a_fourier_bound_is_checked_at_the_mid_points():
+    """A correction whose Fourier series does not converge (a model close to
+    non-invertible, slope 0.95, as learned from a few pixels) has no derivative bound: the
+    tables are still built, at the smallest power of two whose interpolation error,
+    checked at every mid-point against the exact inverse, is within TABLE_TOL."""
+    from telefringe.fringes import fast
+
+    model = PhaseErrorModel(1, (1,), np.array([0.95]), np.array([0.0]))
+    with pytest.raises(ValueError, match="does not converge"):
+        fast._derivative_bounds(model)
+    g, nf, _ = fast._model_tables(model, 1)
+    n = g.size - 2
+    assert fast.TABLE_MIN_SIZE <= n < fast.TABLE_MAX_SIZE
+    assert model.correction_table(n)[1] <= fast.TABLE_TOL
+    assert model.correction_table(n // 2)[1] > fast.TABLE_TOL
+
+
 @pytest.mark.parametrize("model", _TABLE_MODELS, ids=["2-3-4", "3-6-9 strong", "learned 1"])
 def test_float32_table_correction_matches_the_exact_inverse(model):
     """The fused kernel's float32 table look-up (cell and fraction in float64, values and

@@ -134,6 +134,19 @@ def _table_size(bounds, n_min: int = 1) -> int:
     return m
 
 
+def _checked_table_size(model: PhaseErrorModel, n_min: int = 1) -> int:
+    """The table size where :func:`_derivative_bounds` has no bound (a correction whose
+    Fourier series does not converge, e.g. a model learned from few pixels close to
+    non-invertible): the smallest power of two M >= max(n_min, TABLE_MIN_SIZE) whose
+    linear interpolation of the correction, checked against the exact inverse at every
+    cell's mid-point (``PhaseErrorModel.correction_table``), is within TABLE_TOL rad;
+    TABLE_MAX_SIZE at most."""
+    m = max(TABLE_MIN_SIZE, 1 << max(int(n_min) - 1, 0).bit_length())
+    while m < TABLE_MAX_SIZE and model.correction_table(m)[1] > TABLE_TOL:
+        m *= 2
+    return m
+
+
 def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.ndarray, tuple]:
     """The fused kernel's tables of ``model``: the correction g (the measured phase minus
     the true one, by Newton's exact inverse) and the noise factor ``1 / (1 + e'(true
@@ -148,7 +161,10 @@ def _model_tables(model: PhaseErrorModel, n_min: int) -> tuple[np.ndarray, np.nd
     if hit is not None:
         return hit
     # (computed outside the lock: two threads may build the same tables, equal ones)
-    n = _table_size(_derivative_bounds(model), n_min)
+    try:
+        n = _table_size(_derivative_bounds(model), n_min)
+    except ValueError:
+        n = _checked_table_size(model, n_min)
     grid = -np.pi + TWO_PI * np.arange(n) / n
     phi = model._invert(grid)
     g = grid - phi
