@@ -98,6 +98,11 @@ TABLE_MAX_SIZE = 2 ** 20
 TABLE_MIN_TERMS = 48
 
 
+def _smallest_size(n_min: int) -> int:
+    """The smallest table size considered: a power of two >= max(n_min, TABLE_MIN_SIZE)."""
+    return max(TABLE_MIN_SIZE, 1 << max(int(n_min) - 1, 0).bit_length())
+
+
 def _derivative_bounds(model: PhaseErrorModel) -> tuple[float, float, float]:
     """Upper bounds (G1, G2, G3) of the first three derivatives' magnitudes (rad per
     rad^k) of the correction g of ``model`` (the measured phase minus the true one,
@@ -125,7 +130,7 @@ def _table_size(bounds, n_min: int = 1) -> int:
     interpolation of f on a cell of width h is at most h^2 / 8 max |f''|, i.e. h^2 / 8 G2
     for g and h^2 / 8 G3 for 1 - g' (which is at least 1 - G1 > 0)."""
     g1, g2, g3 = bounds
-    m = max(TABLE_MIN_SIZE, 1 << max(int(n_min) - 1, 0).bit_length())
+    m = _smallest_size(n_min)
     while m < TABLE_MAX_SIZE:
         c = (TWO_PI / m) ** 2 / 8.0
         if c * g2 <= TABLE_TOL and (g1 < 1.0 and c * g3 <= TABLE_NF_TOL * (1.0 - g1)):
@@ -141,7 +146,7 @@ def _checked_table_size(model: PhaseErrorModel, n_min: int = 1) -> int:
     linear interpolation of the correction, checked against the exact inverse at every
     cell's mid-point (``PhaseErrorModel.correction_table``), is within TABLE_TOL rad;
     TABLE_MAX_SIZE at most."""
-    m = max(TABLE_MIN_SIZE, 1 << max(int(n_min) - 1, 0).bit_length())
+    m = _smallest_size(n_min)
     while m < TABLE_MAX_SIZE and model.correction_table(m)[1] > TABLE_TOL:
         m *= 2
     return m
