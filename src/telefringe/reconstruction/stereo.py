@@ -82,8 +82,8 @@ from telefringe.reconstruction.cloud import (
 )
 from telefringe.reconstruction.generic import safe_backproject, working_point
 
-__all__ = ["StereoMatch", "StereoNoise", "match_stereo", "match_noise", "triangulate_stereo",
-           "search_range", "stereo_rig"]
+__all__ = ["StereoMatch", "StereoNoise", "StereoNoiseMaps", "match_stereo", "match_noise",
+           "match_noise_maps", "triangulate_stereo", "search_range", "stereo_rig"]
 
 _CHUNK = 4096
 _TOL_F = 1e-9  # projector px
@@ -537,6 +537,131 @@ def _match_compiled(cam1, cam2, shape1, m1, m2, primary, other, combine, P0, off
     return StereoMatch(cloud, _readonly(u2.reshape(shp)), _readonly(v2.reshape(shp)))
 
 
+@dataclass(frozen=True, eq=False)
+class StereoNoiseMaps:
+    """:class:`StereoNoise` in the compact form a file keeps (``points.npz``), from which
+    :meth:`expand` rebuilds it exactly: per point of the first camera's grid the matched
+    sub-pixel of the second camera and the coefficient of each axis, and the second
+    camera's sigma maps.
+
+    Attributes
+    ----------
+    u2, v2 : (rows, cols) px, the matched sub-pixel of the second camera, NaN where the
+        cloud has no point.
+    var_own : (rows, cols) mm^2, the first camera's own part (NaN where no point).
+    coef : (rows, cols, A) mm per projector px, ``c_a`` of each axis matched (A = 1 or
+        2; axis 0 the primary) (NaN where no point).
+    sigma_2 : (A, rows_2, cols_2) projector px, the second camera's ``sigma_u_p`` /
+        ``sigma_v_p`` of the same axes.
+
+    The point at a pixel moves along the first camera's line by ``e - sum_a c_a sum_i w_i
+    sigma_2[a, pixel_i] z_(a, pixel_i)`` (``w_i`` the bilinear weights of the cell at
+    (u2, v2), as :func:`telefringe.geometry.interpolation.bilinear` takes it).
+    """
+
+    u2: np.ndarray
+    v2: np.ndarray
+    var_own: np.ndarray
+    coef: np.ndarray
+    sigma_2: np.ndarray
+
+    def __post_init__(self):
+        shp = np.shape(self.var_own)
+        cf = np.shape(self.coef)
+        s2 = np.shape(self.sigma_2)
+        if (len(shp) != 2 or np.shape(self.u2) != shp or np.shape(self.v2) != shp
+                or cf[:2] != shp or len(cf) != 3 or cf[2] not in (1, 2) or len(s2) != 3
+                or s2[0] != cf[2] or s2[1] < 2 or s2[2] < 2):
+            raise ValueError(f"stereo noise maps of inconsistent shapes: u2 "
+                             f"{np.shape(self.u2)}, v2 {np.shape(self.v2)}, var_own {shp}, "
+                             f"coef {cf}, sigma_2 {s2}")
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(np.shape(self.var_own))
+
+    def expand(self) -> StereoNoise:
+        """The :class:`StereoNoise` of these maps (the weights and sources per point)."""
+        var_own = np.asarray(self.var_own, dtype=np.float64)
+        shp = var_own.shape
+        coef = np.asarray(self.coef, dtype=np.float64).reshape(-1, np.shape(self.coef)[2])
+        sig2 = np.asarray(self.sigma_2, dtype=np.float64)
+        n_ax, rows2, cols2 = sig2.shape
+        gi = np.flatnonzero(np.isfinite(var_own.reshape(-1)))
+        u2 = np.asarray(self.u2, dtype=np.float64).reshape(-1)[gi]
+        v2 = np.asarray(self.v2, dtype=np.float64).reshape(-1)[gi]
+        if not (np.all(np.isfinite(u2) & np.isfinite(v2)) and np.all(u2 >= 0)
+                and np.all(u2 <= cols2 - 1) and np.all(v2 >= 0) and np.all(v2 <= rows2 - 1)):
+            raise ValueError("stereo noise maps: a point's match (u2, v2) is not inside the "
+                             "second camera's image")
+        i, j, fx, fy = bilinear(sig2[0], u2, v2)[3]
+        w = ((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)
+        pix = (i * cols2 + j, i * cols2 + j + 1, (i + 1) * cols2 + j, (i + 1) * cols2 + j + 1)
+        n2 = rows2 * cols2
+        K = 4 * n_ax
+        n = var_own.size
+        weights = np.zeros((n, K))
+        sources = np.full((n, K), -1, dtype=np.int64)
+        for a in range(n_ax):
+            S2 = sig2[a].reshape(-1)
+            c = coef[gi, a]
+            for q in range(4):
+                weights[gi, 4 * a + q] = -c * w[q] * S2[pix[q]]
+                sources[gi, 4 * a + q] = a * n2 + pix[q]
+        return StereoNoise(_readonly(var_own.copy()), _readonly(weights.reshape(shp + (K,))),
+                           _readonly(sources.reshape(shp + (K,))))
+
+
+def match_noise_maps(rig, coords_1, coords_2, match: StereoMatch, *,
+                     use_v_p: bool = True) -> StereoNoiseMaps:
+    """:func:`match_noise` in its compact form (:class:`StereoNoiseMaps`, what
+    ``telefringe reconstruct --second`` keeps in points.npz); the arguments as there."""
+    rig, cam1, cam2 = _two_cameras(rig)
+    cloud = match.cloud
+    shape1, m1 = _maps(coords_1, cloud.shape, "first camera")
+    shape2, m2 = _maps(coords_2, None, "second camera")
+    primary, other, combine = _axes(coords_1, coords_2, use_v_p)
+    axes = (primary, other) if combine else (primary,)
+    for ax in axes:
+        if m1[ax][1] is None or m2[ax][1] is None:
+            raise TriangulationError(f"the noise of the match needs sigma_{ax}_p of both "
+                                     "cameras")
+    gi = np.flatnonzero(cloud.mask.reshape(-1))
+    X = cloud.xyz.reshape(-1, 3)[gi]
+    dirs = np.asarray(cloud.directions, dtype=np.float64)
+    dd = np.broadcast_to(dirs, X.shape) if dirs.ndim == 1 else dirs.reshape(-1, 3)[gi]
+    u2 = np.asarray(match.u2, dtype=np.float64).reshape(-1)[gi]
+    v2 = np.asarray(match.v2, dtype=np.float64).reshape(-1)[gi]
+    _, _, J = cam2.project_jacobian(X)
+    dp = np.einsum("mij,mj->mi", np.asarray(J, dtype=np.float64), dd)
+    slopes, pair, own = [], [], []
+    for ax in axes:
+        M2, S2 = m2[ax]
+        _, gu, gv, corners = bilinear(M2, u2, v2)
+        slopes.append(gu * dp[:, 0] + gv * dp[:, 1])
+        pair.append(_pair_var(m1[ax][1], S2, gi, corners))
+        own.append(_var_of(m1[ax][1], gi))
+    if combine:
+        info = sum(g * g / V for g, V in zip(slopes, pair, strict=True))
+        coef = [g / V / info for g, V in zip(slopes, pair, strict=True)]
+    else:
+        coef = [1.0 / slopes[0]]
+    n = cloud.mask.size
+    shp = cloud.shape
+    var_own = np.full(n, np.nan)
+    var_own[gi] = sum(c * c * o for c, o in zip(coef, own, strict=True))
+    C = np.full((n, len(axes)), np.nan)
+    U2 = np.full(n, np.nan)
+    V2 = np.full(n, np.nan)
+    C[gi] = np.stack(coef, axis=1)
+    U2[gi] = u2
+    V2[gi] = v2
+    sig2 = np.stack([np.asarray(m2[ax][1], dtype=np.float64) for ax in axes])
+    return StereoNoiseMaps(_readonly(U2.reshape(shp)), _readonly(V2.reshape(shp)),
+                           _readonly(var_own.reshape(shp)),
+                           _readonly(C.reshape(shp + (len(axes),))), _readonly(sig2))
+
+
 def match_noise(rig, coords_1, coords_2, match: StereoMatch, *,
                 use_v_p: bool = True) -> StereoNoise:
     """The matched points' errors split into the first camera's own part and the shares
@@ -559,58 +684,9 @@ def match_noise(rig, coords_1, coords_2, match: StereoMatch, *,
 
     Returns
     -------
-    StereoNoise on the first camera's grid.
+    StereoNoise on the first camera's grid (:func:`match_noise_maps` expanded).
     """
-    rig, cam1, cam2 = _two_cameras(rig)
-    cloud = match.cloud
-    shape1, m1 = _maps(coords_1, cloud.shape, "first camera")
-    shape2, m2 = _maps(coords_2, None, "second camera")
-    primary, other, combine = _axes(coords_1, coords_2, use_v_p)
-    axes = (primary, other) if combine else (primary,)
-    for ax in axes:
-        if m1[ax][1] is None or m2[ax][1] is None:
-            raise TriangulationError(f"the noise of the match needs sigma_{ax}_p of both "
-                                     "cameras")
-    gi = np.flatnonzero(cloud.mask.reshape(-1))
-    X = cloud.xyz.reshape(-1, 3)[gi]
-    dirs = np.asarray(cloud.directions, dtype=np.float64)
-    dd = np.broadcast_to(dirs, X.shape) if dirs.ndim == 1 else dirs.reshape(-1, 3)[gi]
-    u2 = np.asarray(match.u2, dtype=np.float64).reshape(-1)[gi]
-    v2 = np.asarray(match.v2, dtype=np.float64).reshape(-1)[gi]
-    _, _, J = cam2.project_jacobian(X)
-    dp = np.einsum("mij,mj->mi", np.asarray(J, dtype=np.float64), dd)
-    slopes, pair, own = [], [], []
-    corners = None
-    for ax in axes:
-        M2, S2 = m2[ax]
-        _, gu, gv, corners = bilinear(M2, u2, v2)
-        slopes.append(gu * dp[:, 0] + gv * dp[:, 1])
-        pair.append(_pair_var(m1[ax][1], S2, gi, corners))
-        own.append(_var_of(m1[ax][1], gi))
-    if combine:
-        info = sum(g * g / V for g, V in zip(slopes, pair, strict=True))
-        coef = [g / V / info for g, V in zip(slopes, pair, strict=True)]
-    else:
-        coef = [1.0 / slopes[0]]
-    i, j, fx, fy = corners
-    w = ((1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy)
-    pix = (i * shape2[1] + j, i * shape2[1] + j + 1, (i + 1) * shape2[1] + j,
-           (i + 1) * shape2[1] + j + 1)
-    n2 = shape2[0] * shape2[1]
-    K = 4 * len(axes)
-    n = cloud.mask.size
-    var_own = np.full(n, np.nan)
-    weights = np.zeros((n, K))
-    sources = np.full((n, K), -1, dtype=np.int64)
-    var_own[gi] = sum(c * c * o for c, o in zip(coef, own, strict=True))
-    for a, ax in enumerate(axes):
-        S2 = m2[ax][1].reshape(-1)
-        for q in range(4):
-            weights[gi, 4 * a + q] = -coef[a] * w[q] * S2[pix[q]]
-            sources[gi, 4 * a + q] = a * n2 + pix[q]
-    shp = cloud.shape
-    return StereoNoise(_readonly(var_own.reshape(shp)), _readonly(weights.reshape(shp + (K,))),
-                       _readonly(sources.reshape(shp + (K,))))
+    return match_noise_maps(rig, coords_1, coords_2, match, use_v_p=use_v_p).expand()
 
 
 def _c(x):
