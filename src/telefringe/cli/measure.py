@@ -90,6 +90,29 @@ def _fail(out, exc):
     raise InputError(f"{out}: {exc}") from None
 
 
+def _is_stereo(out: Path) -> bool:
+    """The reconstruction's summary.json names a second camera's scan."""
+    import json
+
+    try:
+        return "second_scan" in json.loads((Path(out) / "summary.json").read_text())
+    except (OSError, ValueError, TypeError):
+        return False
+
+
+def _stereo_noise(out: Path, pf, what: str):
+    """The StereoNoise points.npz keeps for a two-camera match, or None (one camera's
+    cloud; a note when the folder is a two-camera one written before it was kept)."""
+    if pf.stereo_noise is not None:
+        return pf.stereo_noise.expand()
+    if _is_stereo(out):
+        info(f"[yellow]note:[/yellow] u of {what} treats neighbouring points as "
+             "independent, which understates it for two cameras (neighbouring matches "
+             "share the second camera's pixels): points.npz holds no stereo noise (written "
+             "before 'reconstruct --second' kept it; reconstruct again to include it)")
+    return None
+
+
 def _um(x) -> str:
     return f"{float(x) * 1000:.2f} um"
 
@@ -119,11 +142,13 @@ def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3
     corrected through its camera for the circle-image bias (markers of ``diameter`` mm,
     default half the pitch) and the uncertainty including the calibration's). User
     problems raise InputError."""
+    from telefringe.io.points_npz import load_points
     from telefringe.metrology import measure_plate
     from telefringe.targets.circle_grid import detect_circle_grid
 
     out = Path(out)
-    cloud, texture = _load(out)
+    pf = load_points(out)
+    cloud, texture = pf.cloud, pf.texture
     if texture is None:
         _fail(out, "points.npz has no 'texture' image to find the markers in "
                    "(reconstruct the scan again with this version)")
@@ -133,7 +158,8 @@ def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3
     try:
         m = measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch,
                           camera=None if calibration is None else calibration.rig.camera,
-                          marker_diameter_mm=0.5 * pitch if diameter is None else diameter)
+                          marker_diameter_mm=0.5 * pitch if diameter is None else diameter,
+                          noise=_stereo_noise(out, pf, "the plane's Z and tilt"))
     except _metrology_errors() as exc:
         _fail(out, exc)
     from telefringe.metrology.uncertainty import plate_uncertainty
@@ -233,6 +259,14 @@ def sphere_cmd(
                          f"{'' if rig is None else f' ({rig} has one)'}")
     scan_2 = _second_scan(out, second) if two else None
     spread = _sphere_spread_options(out, cal, pf, scan_2)
+    noise = _stereo_noise(out, pf, "radius and centre")
+    if noise is not None and spread.get("image_2") is not None:
+        spread["noise"] = noise
+    elif noise is not None:
+        info("[yellow]note:[/yellow] u of radius and centre treats neighbouring points as "
+             "independent, which understates it for two cameras: the matches' correlated "
+             "noise (in points.npz) enters the fit through the cameras' point-spread model "
+             "(give --rig with the two-camera rig.json and the second camera's scan)")
     try:
         sm = measure_sphere(cloud, min_height=min_height, **spread)
     except _metrology_errors() as exc:
@@ -501,6 +535,10 @@ def steps_cmd(
     _check_outputs([json_path], force)
     cal = _load_calibration(rig)
     cloud, _ = _load(out)
+    if _is_stereo(out):
+        info("[yellow]note:[/yellow] the levels' fit does not take the two-camera matches' "
+             "correlated noise: u of the heights comes from the residuals (white noise or "
+             "their spatial autocovariance, the larger)")
     try:
         m = measure_steps(cloud, min_step=min_step)
     except _metrology_errors() as exc:

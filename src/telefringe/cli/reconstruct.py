@@ -24,8 +24,9 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     projector nonlinearity is then used) and write ``output``. With ``second`` (the scan
     folder of the rig's second camera), match the two cameras' phases instead (stereo).
 
-    Writes atomically (the folder appears complete or not at all): ``points.npz``,
-    ``cloud.ply``, ``heightmap.tif`` + ``heightmap.json`` (+ ``heightmap_sigma.tif``),
+    Writes atomically (the folder appears complete or not at all): ``points.npz`` (with
+    ``second``, with the matches' noise split, :func:`match_noise_maps`), ``cloud.ply``,
+    ``heightmap.tif`` + ``heightmap.json`` (+ ``heightmap_sigma.tif``),
     ``heightmap.png`` and ``summary.json``. User problems raise ``InputError``.
     ``read(folder) -> Scan`` reads each scan folder (default
     :func:`telefringe.cli._common.read_scan_with_progress`; the command passes scans
@@ -77,6 +78,17 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
     if rec.cloud.count == 0:
         raise InputError(f"{scan_dir}: no valid point (is the object lit and in focus, and "
                          "does the rig belong to this scan?)")
+    stereo_noise = None
+    if data_2 is not None and getattr(rec, "match", None) is not None:
+        # neighbouring matches share the second camera's pixels: their noise split, kept
+        # in points.npz for the covariance of the fits ('measure')
+        from telefringe.reconstruction.stereo import match_noise_maps
+
+        try:
+            stereo_noise = match_noise_maps(rig, rec.coords, rec.coords_2, rec.match)
+        except TriangulationError as exc:
+            info(f"[yellow]note:[/yellow] the matches' correlated noise is not kept ({exc}): "
+                 "measurements will treat neighbouring points as independent")
     made = []
 
     def make_height_map():
@@ -91,6 +103,7 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
             out["noise_model"] = rec.coords.noise.summary()
         if second is not None:
             out["second_scan"] = str(second)
+            out["stereo_noise"] = stereo_noise is not None
             if getattr(rec.coords_2, "noise", None) is not None:
                 out["noise_model_second"] = rec.coords_2.noise.summary()
         if hm is not None:
@@ -101,7 +114,7 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
         try:
             write_reconstruction(tmp, rec.cloud, make_height_map, texture=rec.texture,
                                  radiance=rec.radiance, title=title or Path(scan_dir).name,
-                                 ply=ply, summary=summary)
+                                 ply=ply, summary=summary, stereo_noise=stereo_noise)
         except TriangulationError as exc:  # the height map's (e.g. pixel_mm too small)
             raise user_error(exc) from None
         advance()

@@ -24,7 +24,13 @@ POINTS_VERSION = 2
 _READABLE = (1, 2)
 
 
-def write_points(path, cloud, *, texture=None, radiance=None, force: bool = False) -> Path:
+#: the keys of a two-camera match's noise (StereoNoiseMaps' fields), optional
+_STEREO_KEYS = {"stereo_u2": "u2", "stereo_v2": "v2", "stereo_var_own": "var_own",
+                "stereo_coef": "coef", "stereo_sigma_2": "sigma_2"}
+
+
+def write_points(path, cloud, *, texture=None, radiance=None, stereo_noise=None,
+                 force: bool = False) -> Path:
     """Write an organised point cloud to ``path`` (uncompressed .npz, version 2).
 
     Arrays: ``xyz`` (rows, cols, 3) float64 mm, NaN where invalid; ``mask`` bool;
@@ -35,7 +41,12 @@ def write_points(path, cloud, *, texture=None, radiance=None, force: bool = Fals
     ``residual`` float64 projector px (only with both fringe axes); ``texture`` float32
     (rows, cols) fringe-free camera image (optional, for marker detection); ``radiance``
     float32 (rows, cols) the decoder's background per unit exposure (optional, for BGA
-    highlights); ``format`` and ``version``.
+    highlights); ``format`` and ``version``. With ``stereo_noise`` (a two-camera
+    match's :class:`~telefringe.reconstruction.stereo.StereoNoiseMaps`), float64
+    ``stereo_u2``, ``stereo_v2``, ``stereo_var_own`` (rows, cols), ``stereo_coef`` (rows,
+    cols, A) and ``stereo_sigma_2`` (A, rows_2, cols_2): the noise of neighbouring
+    matches' shared second-camera pixels, for the covariance of fits (optional: files
+    without them read as before).
     """
     arrays = {
         "format": np.array(POINTS_FORMAT),
@@ -55,6 +66,12 @@ def write_points(path, cloud, *, texture=None, radiance=None, force: bool = Fals
             if t.shape != cloud.shape:
                 raise ValueError(f"{name} has shape {t.shape}, the cloud {cloud.shape}")
             arrays[name] = t
+    if stereo_noise is not None:
+        if tuple(stereo_noise.shape) != tuple(cloud.shape):
+            raise ValueError(f"stereo_noise has shape {stereo_noise.shape}, the cloud "
+                             f"{cloud.shape}")
+        for key, field in _STEREO_KEYS.items():
+            arrays[key] = np.asarray(getattr(stereo_noise, field), dtype=np.float64)
     path = Path(path)
     with atomic_file(path, force=force) as tmp, open(tmp, "wb") as f:
         np.savez(f, **arrays)
@@ -63,11 +80,14 @@ def write_points(path, cloud, *, texture=None, radiance=None, force: bool = Fals
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class PointsFile:
-    """Content of ``points.npz``: the cloud and its optional images (float32 or None)."""
+    """Content of ``points.npz``: the cloud and its optional images (float32 or None),
+    and a two-camera match's noise (``StereoNoiseMaps`` or None: a single camera's
+    cloud, or a file written before it was kept)."""
 
     cloud: object
     texture: np.ndarray | None
     radiance: np.ndarray | None
+    stereo_noise: object = None
 
 
 def read_points(path):
@@ -125,4 +145,27 @@ def load_points(path) -> PointsFile:
     xyz = np.where(mask[..., None], xyz, np.nan).astype(np.float64)
     cloud = PointCloud(xyz, mask, np.where(mask, arrays["sigma_line"], np.nan),
                        arrays.get("residual"), arrays["flags"].astype(np.uint8), d)
-    return PointsFile(cloud, arrays.get("texture"), arrays.get("radiance"))
+    return PointsFile(cloud, arrays.get("texture"), arrays.get("radiance"),
+                      _stereo_noise(path, arrays, shape))
+
+
+def _stereo_noise(path, arrays, shape):
+    """The file's StereoNoiseMaps, or None without its keys (all or none)."""
+    have = [k for k in _STEREO_KEYS if k in arrays]
+    if not have:
+        return None
+    if len(have) != len(_STEREO_KEYS):
+        missing = sorted(set(_STEREO_KEYS) - set(have))
+        raise InputError(f"{path}: the stereo noise is incomplete ({', '.join(missing)} "
+                         "missing)")
+    from telefringe.reconstruction.stereo import StereoNoiseMaps
+
+    try:
+        maps = StereoNoiseMaps(**{f: np.asarray(arrays[k], dtype=np.float64)
+                                  for k, f in _STEREO_KEYS.items()})
+    except ValueError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    if maps.shape != tuple(shape):
+        raise InputError(f"{path}: the stereo noise has shape {maps.shape}, expected "
+                         f"{tuple(shape)}")
+    return maps

@@ -30,7 +30,7 @@ def preview_map(hm):
 
 def write_reconstruction(folder, cloud, hm=None, *, texture=None, radiance=None,
                          title: str | None = None, ply: bool = True,
-                         summary=None, force: bool = False) -> dict:
+                         summary=None, force: bool = False, stereo_noise=None) -> dict:
     """Write ``points.npz``, ``cloud.ply``, ``heightmap.tif`` (+ ``.json``, ``_sigma.tif``),
     ``heightmap.x3p`` (the same heights as ISO 25178-72 X3P, :mod:`telefringe.io.x3p`),
     ``heightmap.png`` (of :func:`preview_map`) and ``summary.json`` into an existing
@@ -51,6 +51,7 @@ def write_reconstruction(folder, cloud, hm=None, *, texture=None, radiance=None,
         :func:`telefringe.io.jsonable.write_json`), or a function of the height map (or
         None) returning it; none without it.
     force : replace existing files.
+    stereo_noise : StereoNoiseMaps or None, a two-camera match's noise, kept in points.npz.
 
     Returns
     -------
@@ -81,7 +82,8 @@ def write_reconstruction(folder, cloud, hm=None, *, texture=None, radiance=None,
                                                 folder / "heightmap.png", title=title,
                                                 force=force)
         out["points"] = write_points(folder / "points.npz", cloud, texture=texture,
-                                     radiance=radiance, force=force)
+                                     radiance=radiance, stereo_noise=stereo_noise,
+                                     force=force)
         if ply:
             out["ply"] = write_ply(folder / "cloud.ply", cloud, texture=texture, force=force)
         the_map = height()  # its error, if any, raised here (the other threads end first)

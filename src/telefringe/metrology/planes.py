@@ -67,7 +67,12 @@ class PlaneFit(Plane):
     tangent : (2, 3) orthonormal basis of the plane (its tilts are along these).
     tilt_covariance : (2, 2) rad^2, covariance of the normal's tilt toward ``tangent``.
     sigma_offset : float, mm, standard uncertainty of the plane's position along its
-        normal at the centroid (uncorrelated with the tilts there).
+        normal at the centroid (uncorrelated with the tilts there for independent points).
+    tilt_offset_covariance : (2,) mm rad or None, the covariance of the tilts with that
+        position: set by a fit with correlated noise (``fit_plane(..., noise=)``), None
+        (zero) otherwise.
+    correlated : bool, the covariance holds the correlation of the points' noise (a
+        stereo match's, ``fit_plane(..., noise=)``).
     """
 
     centroid: np.ndarray = None
@@ -79,10 +84,13 @@ class PlaneFit(Plane):
     tangent: np.ndarray = None
     tilt_covariance: np.ndarray = None
     sigma_offset: float = np.nan
+    tilt_offset_covariance: np.ndarray | None = None
+    correlated: bool = False
 
     def __post_init__(self):
         super().__post_init__()
-        _freeze(self, "centroid", "inliers", "tangent", "tilt_covariance")
+        _freeze(self, "centroid", "inliers", "tangent", "tilt_covariance",
+                "tilt_offset_covariance")
 
     @property
     def plane(self) -> Plane:
@@ -96,7 +104,10 @@ class PlaneFit(Plane):
     def sigma_at(self, point) -> float:
         """Standard uncertainty (mm) of the plane's position along its normal at ``point``."""
         q = self.tangent @ (np.asarray(point, dtype=np.float64) - self.centroid)
-        return float(np.sqrt(self.sigma_offset**2 + q @ self.tilt_covariance @ q))
+        var = self.sigma_offset**2 + q @ self.tilt_covariance @ q
+        if self.tilt_offset_covariance is not None:
+            var += 2.0 * float(q @ self.tilt_offset_covariance)
+        return float(np.sqrt(max(var, 0.0)))
 
 
 def _lmeds_plane(p: np.ndarray, rng: np.random.Generator, *, trials: int = 300,
@@ -119,7 +130,7 @@ def _lmeds_plane(p: np.ndarray, rng: np.random.Generator, *, trials: int = 300,
 
 
 def fit_plane(points, *, weights=None, robust: bool = False, seed: int = 0,
-              max_iter: int = 50) -> PlaneFit:
+              max_iter: int = 50, noise=None) -> PlaneFit:
     """Fit a plane to points (total least squares, optionally robust).
 
     Parameters
@@ -137,6 +148,14 @@ def fit_plane(points, *, weights=None, robust: bool = False, seed: int = 0,
         final weight are outliers. Otherwise plain least squares on all points.
     seed : int
         Seeds the robust start.
+    noise : StereoNoise, optional, with a PointCloud matched by two cameras: the points'
+        noise split into its independent parts
+        (:func:`telefringe.reconstruction.stereo.match_noise` of the match that made the
+        cloud, on its grid). Neighbouring matches share the second camera's pixels, so
+        their errors are correlated and the usual covariance (independent points)
+        understates the plane's; with it the covariance is the sandwich of the points'
+        exact covariance (:func:`_plane_sandwich`), scaled by the residuals. The fit is
+        the same.
 
     Returns
     -------
@@ -145,7 +164,8 @@ def fit_plane(points, *, weights=None, robust: bool = False, seed: int = 0,
     Raises
     ------
     MetrologyError
-        Fewer than 3 points, collinear points, or fewer than 3 inliers.
+        Fewer than 3 points, collinear points, or fewer than 3 inliers; ``noise`` without
+        a cloud, of another shape, or not covering a fitted point.
     """
     from telefringe.metrology._plane_kernels import (
         kept_moments,
@@ -222,10 +242,68 @@ def fit_plane(points, *, weights=None, robust: bool = False, seed: int = 0,
     inliers = np.zeros(n_all, dtype=bool)
     idx = np.flatnonzero(finite)
     inliers[idx[keep]] = True
+    sigma_offset = float(np.sqrt(s2 / (sw / mean_w)))
+    cross = None
+    if noise is not None:
+        cov = _plane_sandwich(points, noise, idx, pf, wf, keep, n, c, T)
+        tilt_cov = cov[:2, :2]
+        sigma_offset = float(np.sqrt(cov[2, 2]))
+        cross = cov[:2, 2]
     return PlaneFit(n, d, centroid=c, rms=float(np.sqrt(sr2 / nk)),
                     flatness=float(rmax - rmin), n_points=int(n_all),
                     n_inliers=int(nk), inliers=inliers, tangent=T, tilt_covariance=tilt_cov,
-                    sigma_offset=float(np.sqrt(s2 / (sw / mean_w))))
+                    sigma_offset=sigma_offset, tilt_offset_covariance=cross,
+                    correlated=noise is not None)
+
+
+def _noise_at(cloud, noise, what: str):
+    """The StereoNoise ``noise``'s (var_own (n,), weights (n, K), sources (n, K)) at the
+    cloud's valid points (row-major, as ``cloud.points()``)."""
+    from telefringe.reconstruction.cloud import PointCloud
+
+    if not isinstance(cloud, PointCloud):
+        raise MetrologyError(f"noise needs the {what} as a PointCloud (its pixels)")
+    if np.shape(noise.var_own) != cloud.shape:
+        raise MetrologyError(f"noise has shape {np.shape(noise.var_own)}, the cloud "
+                             f"{cloud.shape}")
+    m = cloud.mask
+    return (np.asarray(noise.var_own, dtype=np.float64)[m],
+            np.asarray(noise.weights, dtype=np.float64)[m],
+            np.asarray(noise.sources)[m])
+
+
+def _plane_sandwich(cloud, noise, idx, pf, wf, keep, n, c, T):
+    """Covariance (3, 3) of (tilt toward T[0], tilt toward T[1] (rad), offset along
+    ``n`` at the centroid ``c`` (mm)) of the weighted total-least-squares plane of the
+    kept points, with their correlated noise.
+
+    The residual ``n . (p - c)`` of a point moves by ``(n . d) delta_s`` when the point
+    moves by ``delta_s`` along its line ``d``; the linearised weighted fit is an ordinary
+    one in ``sqrt(w)``-scaled rows, design ``[T (p - c), -1]``, whose covariance is the
+    sandwich (:func:`telefringe.metrology.spheres._sandwich`) of the points' covariance
+    from the noise split (``idx`` the points' indices among the cloud's valid points,
+    ``pf``/``wf``/``keep`` the fit's points, weights and kept rows)."""
+    from telefringe.metrology.spheres import _sandwich
+
+    var_own, weights, sources = _noise_at(cloud, noise, "points")
+    use = keep & (wf > 0)
+    sel = idx[use]
+    var_own, weights, sources = var_own[sel], weights[sel], sources[sel]
+    if not np.all(np.isfinite(var_own)):
+        raise MetrologyError("noise does not cover every fitted point (NaN var_own)")
+    dirs = np.asarray(cloud.directions, dtype=np.float64)
+    dv = (np.broadcast_to(dirs, (sel.size, 3)) if dirs.ndim == 1
+          else dirs[cloud.mask][sel])
+    p = pf[use] - c
+    sw = np.sqrt(wf[use])
+    J = np.column_stack([p @ T.T, -np.ones(sel.size)]) * sw[:, None]
+    f = (p @ n) * sw
+    a = (dv @ n) * sw
+    try:
+        Ninv = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        raise MetrologyError("the points are collinear: no plane") from None
+    return _sandwich(J, a, Ninv, f, var_own, weights, sources)
 
 
 @dataclass(frozen=True)

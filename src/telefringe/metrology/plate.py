@@ -252,7 +252,7 @@ class PlateMeasurement:
 def measure_plate(cloud: PointCloud, centres_px, *, rows: int, cols: int, pitch_mm: float,
                   reference: Plane | None = None, inner_px: float | None = None,
                   outer_px: float | None = None, seed: int = 0, camera=None,
-                  marker_diameter_mm: float | None = None) -> PlateMeasurement:
+                  marker_diameter_mm: float | None = None, noise=None) -> PlateMeasurement:
     """Measure a circle-marker plate: its plane, its height and its marker spacing.
 
     A detected marker centre is the centre of the circle's image, not the image of the
@@ -282,6 +282,9 @@ def measure_plate(cloud: PointCloud, centres_px, *, rows: int, cols: int, pitch_
         (``centre_offsets_px`` is None): a bias of up to a few 1e-5 of the spacing on a
         distorting lens.
     marker_diameter_mm : float, the markers' diameter (needed with ``camera``).
+    noise : StereoNoise, optional, a cloud matched by two cameras: the plane's covariance
+        (Z and tilt) then holds the correlation of neighbouring matches
+        (``fit_plane(..., noise=)``).
 
     Returns
     -------
@@ -300,7 +303,7 @@ def measure_plate(cloud: PointCloud, centres_px, *, rows: int, cols: int, pitch_
             raise MetrologyError(f"the camera is {size[0]} x {size[1]} px but the cloud is "
                                  f"{cloud.shape[1]} x {cloud.shape[0]}: give the camera that "
                                  "made it")
-    plane = fit_plane(cloud, robust=True, seed=seed)
+    plane = fit_plane(cloud, robust=True, seed=seed, noise=noise)
     ref = Plane.horizontal(0.0) if reference is None else reference
     centres = marker_centres_3d(cloud, c, inner_px=inner_px, outer_px=outer_px)
     offsets = None

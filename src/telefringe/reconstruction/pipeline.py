@@ -84,6 +84,9 @@ class Reconstruction:
     texture: np.ndarray
     radiance: np.ndarray | None = None
     coords_2: object = None  #: the second camera's coordinates (two-camera rigs)
+    #: the StereoMatch (two-camera rigs: the matched sub-pixels of the second camera, for
+    #: :func:`telefringe.reconstruction.stereo.match_noise`)
+    match: object = None
 
 
 
@@ -204,4 +207,4 @@ def reconstruct_stereo_scans(scan_1, scan_2, rig: Rig, *, max_residual: float | 
     texture = np.asarray(fringe_free_image(scan_1), dtype=np.float32)
     has_phase = any(isinstance(g, PhaseGroup) for g in m1.groups)
     radiance = scan_radiance(scan_1) if has_phase else radiance_image(coords_1)
-    return Reconstruction(coords_1, cloud, hm, texture, radiance, coords_2)
+    return Reconstruction(coords_1, cloud, hm, texture, radiance, coords_2, match)
