@@ -59,6 +59,10 @@ def main() -> None:
         print(f"  sigma per point: Monte Carlo / predicted = {res.sigma_ratio:.3f} over "
               f"{res.n_mc} scans" + ("   OK" if abs(res.sigma_ratio - 1) <= 0.1 else
                                      "   FAILS"))
+        ps = res.plane_fit_sigma
+        print(f"  plane fit height sigma: predicted {ps[0] * 1000:.4f} um (as independent "
+              f"points {ps[1] * 1000:.4f} um), spread over the {res.n_mc} scans "
+              f"{ps[2] * 1000:.4f} um")
         for f in res.steps:
             print(_row(f) + ("   OK" if abs(f.z_score) <= 3 else "   FAILS"))
         for f in ([res.sphere] if res.sphere is not None else []) + list(res.sphere_centre):

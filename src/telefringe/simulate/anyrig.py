@@ -142,6 +142,20 @@ def _triangulate(rig: Rig, coords: dict):
     return triangulate(rig, coords[rig.camera_names[0]])
 
 
+def _triangulate_with_noise(rig: Rig, coords: dict):
+    """(cloud, StereoNoise or None): a two-camera rig's match with its noise split
+    (:func:`telefringe.reconstruction.stereo.match_noise`; the cloud is
+    :func:`_triangulate`'s), None for one camera."""
+    if len(rig.cameras) > 1:
+        from telefringe.reconstruction.stereo import match_noise, match_stereo
+
+        names = rig.camera_names
+        c1, c2 = coords[names[0]], coords[names[1]]
+        m = match_stereo(rig, c1, c2)
+        return m.cloud, match_noise(rig, c1, c2, m)
+    return _triangulate(rig, coords), None
+
+
 def held_out_plane(vrig: VirtualRig) -> TiltedPlane:
     """A matte plane tilted 7 deg, 0.8 mm above the reference plate's centre: a pose no
     calibration set holds."""
@@ -203,6 +217,11 @@ class AnyrigResult:
         repeat; n_mc : int.
     steps : list of SceneFigures (step heights); sphere : SceneFigures (radius) or None.
     sphere_centre : list of SceneFigures, the sphere centre's x, y, z (world, mm).
+    plane_fit_sigma : (predicted, predicted for independent points, spread) mm: the
+        standard uncertainty of the held-out plane's fitted height at its true point, as
+        ``fit_plane`` predicts it (mean over the scans; a two-camera rig's with the
+        matches' correlated noise) and as the points were independent, and the std of
+        that height over the scans.
     """
 
     rig: str
@@ -215,6 +234,7 @@ class AnyrigResult:
     sphere: SceneFigures | None = None
     mirror: str = ""
     sphere_centre: list = field(default_factory=list)
+    plane_fit_sigma: tuple = ()
 
 
 def _plane_errors(cloud, plane: TiltedPlane):
@@ -258,6 +278,7 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
     ``sigma_line`` along the normal. Steps (``default_steps``) and sphere
     (``default_sphere``): one scan each; their noise uncertainty from the fits.
     """
+    from telefringe.metrology.planes import fit_plane
     from telefringe.metrology.spheres import measure_sphere
     from telefringe.metrology.steps import measure_steps
 
@@ -271,13 +292,19 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
     plane = held_out_plane(vrig)
     geoms: dict = {}
     biases, es, sig, masks = [], [], [], []
+    fit_h, fit_s, fit_si = [], [], []
     coords0 = None
     for k in range(max(int(n_mc), 2)):
         scans, _ = scan_scene(vrig, plane, seed=seed + 101 + k, geometries=geoms)
         coords = _decode_all(scans, calib, noise)
         if coords0 is None:
             coords0 = coords
-        cloud = _triangulate(calib.rig, coords)
+        cloud, pnoise = _triangulate_with_noise(calib.rig, coords)
+        fc = fit_plane(cloud, noise=pnoise)
+        fit_h.append(float(fc.distance(plane.point)))
+        fit_s.append(fc.sigma_at(plane.point))
+        fit_si.append(fit_plane(cloud).sigma_at(plane.point) if pnoise is not None
+                      else fit_s[-1])
         e, s, m = _plane_errors(cloud, plane)
         full_e = np.full(m.shape, np.nan)
         full_e[m] = e
@@ -323,9 +350,12 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
         sph = default_sphere()
         scans, _ = scan_scene(vrig, sph, seed=seed + 401)
         coords = _decode_all(scans, calib, noise)
-        cloud = _triangulate(calib.rig, coords)
+        cloud, snoise = _triangulate_with_noise(calib.rig, coords)
         kw = _sphere_options(calib.rig, scans)
-        fit = measure_sphere(cloud, **kw(calib.rig)).sphere
+        opts = kw(calib.rig)
+        if snoise is not None and "rig" in opts:  # the fit's covariance with it
+            opts["noise"] = snoise
+        fit = measure_sphere(cloud, **opts).sphere
         cal = np.array([[*f.centre, f.radius] for f in
                         (measure_sphere(_triangulate(r, coords), **kw(r)).sphere
                          for r in rigs)])
@@ -341,4 +371,7 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
         progress("sphere", 1, 1)
     return AnyrigResult(rig=vrig.name, n_poses=n_poses, rms=rms, plane_bias=plane_fig,
                         sigma_ratio=float(emp / pred), n_mc=int(n_mc), steps=steps_figs,
-                        sphere=sphere_fig, mirror=calib.mirror, sphere_centre=centre_figs)
+                        sphere=sphere_fig, mirror=calib.mirror, sphere_centre=centre_figs,
+                        plane_fit_sigma=(float(np.sqrt(np.mean(np.square(fit_s)))),
+                                         float(np.sqrt(np.mean(np.square(fit_si)))),
+                                         float(np.std(fit_h, ddof=1))))
