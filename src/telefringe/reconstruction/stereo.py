@@ -41,7 +41,9 @@ The point moves along the first camera's line: ``sigma_line = sigma_s``.
 Neighbouring points' errors are correlated: the matches of neighbouring pixels of the
 first camera interpolate the same pixels of the second (:func:`match_noise` gives each
 point's error as its own part plus weighted shares of the second camera's pixels'
-independent noise, from which a fit builds the exact covariance of its points).
+independent noise, from which a fit builds the exact covariance of its points;
+:func:`match_noise_maps` its compact form, which ``telefringe reconstruct --second`` keeps
+in points.npz for ``measure_sphere(..., noise=)`` and ``fit_plane(..., noise=)``).
 
 Engines: the compiled matcher (:mod:`telefringe.reconstruction._stereo_kernels`, numba,
 parallel over the first camera's rows) runs the same samples, brackets and iterations per
