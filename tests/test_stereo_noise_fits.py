@@ -204,3 +204,27 @@ def test_noise_maps_expand_and_points_npz(tmp_path):
     with pytest.raises(ValueError, match="stereo_noise has shape"):
         write_points(tmp_path / "x.npz", m.cloud, stereo_noise=StereoNoiseMaps(
             *(np.zeros((2, 2)),) * 3, np.zeros((2, 2, 1)), np.zeros((1, 4, 4))))
+
+
+def test_measure_plate_plane_takes_the_noise():
+    """``measure_plate(..., noise=)``: its plane is ``fit_plane(cloud, robust=True,
+    noise=)``'s (Z's sigma from it, the tilts' covariance too), larger than without."""
+    from telefringe.metrology import measure_plate
+    from telefringe.metrology.planes import Plane, plane_distance
+
+    shape = (48, 64)
+    rig = stereo_rig_of("pp", shape)
+    _, (u1, v1), (u2, v2) = stereo_truth(rig, shape)
+    rng = np.random.default_rng(4)
+    a, b = _coords(u1, v1, _S1, rng), _coords(u2, v2, _S2, rng)
+    m = match_stereo(rig, a, b)
+    nz = match_noise(rig, a, b, m)
+    uu, vv = np.meshgrid([18.0, 32.0, 46.0], [10.0, 24.0, 38.0])
+    centres = np.stack([uu.ravel(), vv.ravel()], axis=1)
+    pc = measure_plate(m.cloud, centres, rows=3, cols=3, pitch_mm=0.9, noise=nz)
+    pi = measure_plate(m.cloud, centres, rows=3, cols=3, pitch_mm=0.9)
+    fc = fit_plane(m.cloud, robust=True, noise=nz)
+    assert pc.plane.correlated and not pi.plane.correlated
+    np.testing.assert_array_equal(pc.plane.tilt_covariance, fc.tilt_covariance)
+    assert pc.z.sigma == plane_distance(fc, Plane.horizontal(0.0)).sigma
+    assert pc.z.distance == pi.z.distance and pc.z.sigma > pi.z.sigma
