@@ -101,16 +101,21 @@ def _is_stereo(out: Path) -> bool:
 
 
 def _stereo_noise(out: Path, pf, what: str):
-    """The StereoNoise points.npz keeps for a two-camera match, or None (one camera's
+    """The StereoNoiseMaps points.npz keeps for a two-camera match, or None (one camera's
     cloud; a note when the folder is a two-camera one written before it was kept)."""
     if pf.stereo_noise is not None:
-        return pf.stereo_noise.expand()
+        return pf.stereo_noise
     if _is_stereo(out):
         info(f"[yellow]note:[/yellow] u of {what} treats neighbouring points as "
              "independent, which understates it for two cameras (neighbouring matches "
              "share the second camera's pixels): points.npz holds no stereo noise (written "
              "before 'reconstruct --second' kept it; reconstruct again to include it)")
     return None
+
+
+def _expand(maps):
+    """The StereoNoise of StereoNoiseMaps (None stays None)."""
+    return None if maps is None else maps.expand()
 
 
 def _um(x) -> str:
@@ -159,7 +164,7 @@ def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3
         m = measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch,
                           camera=None if calibration is None else calibration.rig.camera,
                           marker_diameter_mm=0.5 * pitch if diameter is None else diameter,
-                          noise=_stereo_noise(out, pf, "the plane's Z and tilt"))
+                          noise=_expand(_stereo_noise(out, pf, "the plane's Z and tilt")))
     except _metrology_errors() as exc:
         _fail(out, exc)
     from telefringe.metrology.uncertainty import plate_uncertainty
@@ -261,7 +266,7 @@ def sphere_cmd(
     spread = _sphere_spread_options(out, cal, pf, scan_2)
     noise = _stereo_noise(out, pf, "radius and centre")
     if noise is not None and spread.get("image_2") is not None:
-        spread["noise"] = noise
+        spread["noise"] = noise.expand()
     elif noise is not None:
         info("[yellow]note:[/yellow] u of radius and centre treats neighbouring points as "
              "independent, which understates it for two cameras: the matches' correlated "
