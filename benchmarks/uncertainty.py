@@ -175,10 +175,13 @@ def measure_all(cal, scenes, only=SCENES):
         cloud = triangulate(cal.rig, s["coords"])
         if "det" not in s:
             s["det"] = detect_circle_grid(s["texture"], rows=9, cols=11)
-        # the detected centres corrected through the rig's camera (markers 1.5 mm across)
+        # the detected centres corrected through the rig's camera (markers 1.5 mm across),
+        # with their uncertainties from the detector's fits
         m = plate_uncertainty(measure_plate(cloud, s["det"].centers, rows=9, cols=11,
                                             pitch_mm=3.0, camera=cal.rig.camera,
-                                            marker_diameter_mm=1.5), cloud, cal)
+                                            marker_diameter_mm=1.5,
+                                            centres_sigma_px=s["det"].center_sigma),
+                              cloud, cal)
         n_t = s["normal"] * np.sign(s["normal"][2])
         pa = np.asarray(m.z.at)
         z_true = (n_t @ s["point"] - n_t[0] * pa[0] - n_t[1] * pa[1]) / n_t[2]

@@ -133,7 +133,8 @@ def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3
     try:
         m = measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch,
                           camera=None if calibration is None else calibration.rig.camera,
-                          marker_diameter_mm=0.5 * pitch if diameter is None else diameter)
+                          marker_diameter_mm=0.5 * pitch if diameter is None else diameter,
+                          centres_sigma_px=det.center_sigma)
     except _metrology_errors() as exc:
         _fail(out, exc)
     from telefringe.metrology.uncertainty import plate_uncertainty
