@@ -4,8 +4,9 @@ The ``fast`` virtual rig's calibration set (fixed poses) is rendered with N diff
 noise seeds and calibrated N times (each calibration is cached as rig.json in
 ``--cache``, default ``$TMPDIR/telefringe-uncertainty``: a rerun only calibrates the seeds
 it lacks). Held-out scenes (a tilted circle plate, a step gauge, a sphere on a plane, a
-BGA read at full resolution through a window) are rendered and decoded once; each of the
-N rigs triangulates and measures them. Per quantity the table gives the calibration
+BGA read at full resolution through a window) are rendered and decoded once (the plate
+in ``--plate-draws`` noise draws, see PLATE_SEEDS); each of the N rigs triangulates and
+measures them. Per quantity the table gives the calibration
 uncertainty u_cal predicted from each rig's covariance (median over the rigs), the
 spread observed over the N rigs (their standard deviation: the scenes' noise is the same
 for every rig, so the spread is the calibration's alone), their ratio, and the coverage:
@@ -13,7 +14,8 @@ the share of (rig, quantity) cases where |measured - true| <= U = 2 u (u with th
 part). Goals (issue 13): ratio within 1 +- 0.25, coverage >= 90 %.
 
     .venv/bin/python benchmarks/uncertainty.py [--seeds 40] [--poses 6] [--cache DIR]
-        [--only plate,steps,sphere,bga]
+        [--only plate,steps,sphere,bga] [--plate-draws 4]
+        [--plate-edge-supersample 21]
 """
 
 from __future__ import annotations
@@ -66,6 +68,24 @@ def calibrate_seeds(cache: Path, seeds, n_poses: int, *, log=print, available=Fa
     return vrig, rigs
 
 
+#: Noise seeds of the held-out plate's renders. A plate's mean spacing is, per row, its
+#: end markers' difference: their detection error, fixed for one image, is half of the
+#: spacing's u (0.03 um of u_noise, twice u_cal), so one render is one draw of it and its
+#: coverage over the rigs the luck of that draw (with the true rig and 7 edge sub-samples,
+#: seeds 501, 502, 503 of that scene: X +0.056, +0.005, +0.010 um, u_noise 0.030). With
+#: 21 sub-samples these four draw X +0.030, +0.002, -0.013, -0.026 um and Y +0.028,
+#: -0.021, -0.050, -0.017 um, u_noise 0.029 and 0.035. Coverage and spread are pooled over
+#: the rigs and these draws (the spread over the rigs for each draw: the calibration's).
+PLATE_SEEDS = (501, 601, 701, 801)
+#: Sub-samples per side of the plate's edge pixels (the preset's 7 elsewhere). The
+#: renderer's midpoint rule over an edge pixel errs by a few per cent of its contrast;
+#: with 7 x 7 it moves each marker's detected centre by 0.0034 px RMS, fixed per marker
+#: (benchmarks/detector_bias.py), an error of the simulated image that a camera's exact
+#: pixel integration does not have and that no uncertainty of the measurement can hold:
+#: on the held-out pose noise-free, the spacing X from the detected centres is off by
+#: +0.043 um with 7 (0.0026 px in the first column's mean), +0.009 um with 21.
+PLATE_EDGE_SUPERSAMPLE = 21
+
 BGA_WINDOW = 360  # full-resolution camera pixels (the fast rig's camera is binned 4 x 4)
 
 
@@ -84,8 +104,12 @@ def _bga_calibration(cal, col0, row0):
     return replace(cal, rig=rig, covariance=cov, std=np.sqrt(np.diag(cov)))
 
 
-def held_out_scenes(vrig):
-    """Render and decode the held-out scenes once: name -> dict (coords, texture, truth)."""
+def held_out_scenes(vrig, only=None, *, plate_seed: int = PLATE_SEEDS[0],
+                    plate_edge_supersample: int = PLATE_EDGE_SUPERSAMPLE):
+    """Render and decode the held-out scenes named in ``only`` (default: all of
+    :data:`SCENES`) once: name -> dict (coords, texture, truth). The plate is rendered
+    with the noise seed ``plate_seed`` and ``plate_edge_supersample`` sub-samples per side
+    of its edge pixels (see :data:`PLATE_EDGE_SUPERSAMPLE`)."""
     from dataclasses import replace
 
     from telefringe.fringes.decode import decode
@@ -96,20 +120,27 @@ def held_out_scenes(vrig):
     from telefringe.simulate.render import default_groups, render_scan
     from telefringe.simulate.scenes import default_bga, default_steps, plate_from_target
 
+    only = SCENES if only is None else only
     groups = default_groups(vrig)
     out = {}
     T = vrig.target
     c_t = np.array([(T.cols - 1) * T.pitch_mm / 2, (T.rows - 1) * T.pitch_mm / 2, 0.0])
     R = rotation_from_rotvec(np.radians([6.0, -4.0, 3.0]))
     t = c_t + np.array([0.5, -0.3, 0.8]) - R @ c_t
-    scan, _ = render_scan(vrig, plate_from_target(T, R, t), groups, seed=501)
-    out["plate"] = dict(coords=decode(scan, **DECODE), texture=fringe_free_image(scan),
-                        normal=R[:, 2], point=t)
-    steps = default_steps()
-    scan, _ = render_scan(vrig, steps, groups, seed=502)
-    out["steps"] = dict(coords=decode(scan, **DECODE),
-                        heights=np.concatenate([[0.0], np.asarray(steps.blocks)[:, 5]]))
-    out["sphere"] = sphere_scene(vrig)
+    if "plate" in only:
+        vplate = vrig.with_photometry(edge_supersample=int(plate_edge_supersample))
+        scan, _ = render_scan(vplate, plate_from_target(T, R, t), groups, seed=plate_seed)
+        out["plate"] = dict(coords=decode(scan, **DECODE), texture=fringe_free_image(scan),
+                            normal=R[:, 2], point=t)
+    if "steps" in only:
+        steps = default_steps()
+        scan, _ = render_scan(vrig, steps, groups, seed=502)
+        out["steps"] = dict(coords=decode(scan, **DECODE),
+                            heights=np.concatenate([[0.0], np.asarray(steps.blocks)[:, 5]]))
+    if "sphere" in only:
+        out["sphere"] = sphere_scene(vrig)
+    if "bga" not in only:
+        return out
     bga = default_bga(0, rows=10, cols=10, n_missing=2)
     fine = replace(vrig, rig=unbin_rig(vrig.rig, 4))
     col0, row0 = bga_window(fine, size=BGA_WINDOW)
@@ -171,21 +202,29 @@ def measure_all(cal, scenes, only=SCENES):
                      np.broadcast_to(np.ravel(unc.u_calibration), v.shape)))
 
     if "plate" in only:
-        s = scenes["plate"]
-        cloud = triangulate(cal.rig, s["coords"])
-        if "det" not in s:
-            s["det"] = detect_circle_grid(s["texture"], rows=9, cols=11)
-        # the detected centres corrected through the rig's camera (markers 1.5 mm across)
-        m = plate_uncertainty(measure_plate(cloud, s["det"].centers, rows=9, cols=11,
-                                            pitch_mm=3.0, camera=cal.rig.camera,
-                                            marker_diameter_mm=1.5), cloud, cal)
-        n_t = s["normal"] * np.sign(s["normal"][2])
-        pa = np.asarray(m.z.at)
-        z_true = (n_t @ s["point"] - n_t[0] * pa[0] - n_t[1] * pa[1]) / n_t[2]
-        add("plate Z", m.uncertainty["z"], z_true)
-        add("plate tilt (deg)", m.uncertainty["tilt_deg"], np.degrees(np.arccos(n_t[2])))
-        add("marker spacing X", m.uncertainty["spacing_x"], 3.0)
-        add("marker spacing Y", m.uncertainty["spacing_y"], 3.0)
+        got = {}
+        for s in scenes["plate"]:  # one dict per noise draw (PLATE_SEEDS)
+            cloud = triangulate(cal.rig, s["coords"])
+            if "det" not in s:
+                s["det"] = detect_circle_grid(s["texture"], rows=9, cols=11)
+            # the detected centres corrected through the rig's camera (markers 1.5 mm
+            # across), with their uncertainties from the detector's fits
+            m = plate_uncertainty(measure_plate(cloud, s["det"].centers, rows=9, cols=11,
+                                                pitch_mm=3.0, camera=cal.rig.camera,
+                                                marker_diameter_mm=1.5,
+                                                centres_sigma_px=s["det"].center_sigma),
+                                  cloud, cal)
+            n_t = s["normal"] * np.sign(s["normal"][2])
+            pa = np.asarray(m.z.at)
+            z_true = (n_t @ s["point"] - n_t[0] * pa[0] - n_t[1] * pa[1]) / n_t[2]
+            for name, key, truth in (("plate Z", "z", z_true),
+                                     ("plate tilt (deg)", "tilt_deg",
+                                      np.degrees(np.arccos(n_t[2]))),
+                                     ("marker spacing X", "spacing_x", 3.0),
+                                     ("marker spacing Y", "spacing_y", 3.0)):
+                got.setdefault(name, []).append((m.uncertainty[key], truth))
+        for name, draws in got.items():
+            add(name, _cat(*(u for u, _ in draws)), np.array([t for _, t in draws]))
 
     if "steps" in only:
         s = scenes["steps"]
@@ -236,14 +275,17 @@ def _skip0(unc):
                        np.ravel(unc.u_calibration)[1:])
 
 
-def _cat(a, b):
+def _cat(*parts):
+    """The values of several Uncertainty objects in one (non-finite values dropped)."""
     from telefringe.metrology.uncertainty import Uncertainty
 
-    v = np.concatenate([np.ravel(a.value), np.ravel(b.value)])
+    def cat(field):
+        return np.concatenate([np.broadcast_to(np.ravel(getattr(p, field)),
+                                               np.ravel(p.value).shape) for p in parts])
+
+    v = cat("value")
     ok = np.isfinite(v)
-    return Uncertainty(v[ok], np.concatenate([np.ravel(a.u_noise), np.ravel(b.u_noise)])[ok],
-                       np.concatenate([np.ravel(a.u_calibration),
-                                       np.ravel(b.u_calibration)])[ok])
+    return Uncertainty(v[ok], cat("u_noise")[ok], cat("u_calibration")[ok])
 
 
 def table(per_rig, reference):
@@ -292,6 +334,10 @@ def main(argv=None) -> int:
     ap.add_argument("--calibrate-only", action="store_true")
     ap.add_argument("--available", action="store_true",
                     help="use only the seeds whose calibration is already in the cache")
+    ap.add_argument("--plate-draws", type=int, default=len(PLATE_SEEDS),
+                    help=f"noise draws of the held-out plate (1-{len(PLATE_SEEDS)})")
+    ap.add_argument("--plate-edge-supersample", type=int, default=PLATE_EDGE_SUPERSAMPLE,
+                    help="sub-samples per side of the plate's edge pixels (the preset: 7)")
     ap.add_argument("--only", default=",".join(SCENES),
                     help="comma-separated held-out scenes to measure (default: all of "
                     f"{', '.join(SCENES)})")
@@ -309,15 +355,26 @@ def main(argv=None) -> int:
     from centre_bias import code_digest
 
     tag = "g" if DECODE["gamma_correction"] else "ng"
-    scene_file = args.cache / f"held_out_scenes_{tag}_{code_digest()}.pickle"
-    if scene_file.exists():
-        scenes = pickle.loads(scene_file.read_bytes())
-        if "radiance" not in scenes["sphere"]:  # a cache from before the sphere's model
-            scenes["sphere"] = sphere_scene(vrig)
-            scene_file.write_bytes(pickle.dumps(scenes))
-    else:
-        scenes = held_out_scenes(vrig)
-        scene_file.write_bytes(pickle.dumps(scenes))
+    scenes = {}
+
+    def cached(label, make):  # each scene (plate draw) cached on its own
+        f = args.cache / f"held_out_{label}_{tag}_{code_digest()}.pickle"
+        if f.exists():
+            return pickle.loads(f.read_bytes())
+        out = make()
+        f.write_bytes(pickle.dumps(out))
+        return out
+
+    for name in only:
+        if name == "plate":
+            es = args.plate_edge_supersample
+            scenes[name] = [cached(f"plate_s{k}_e{es}",
+                                   lambda k=k, es=es: held_out_scenes(
+                                       vrig, ("plate",), plate_seed=k,
+                                       plate_edge_supersample=es)["plate"])
+                            for k in PLATE_SEEDS[:args.plate_draws]]
+        else:
+            scenes[name] = cached(name, lambda name=name: held_out_scenes(vrig, (name,))[name])
     print(f"held-out scenes rendered and decoded: {time.process_time() - t0:.0f} s CPU",
           flush=True)
     per_rig = []

@@ -40,7 +40,7 @@ def _fit(img):
     out = np.hypot(xx - ox, yy - oy) > A + 5  # the surround: the background plane's start
     M = np.column_stack([np.ones(out.sum()), (xx - ox)[out], (yy - oy)[out]])
     bg, *_ = np.linalg.lstsq(M, img[out], rcond=None)
-    params, _ = _fit_blurred_ellipse(img, xx, yy, start, bg, (ox, oy), 0.8)
+    params, _, _ = _fit_blurred_ellipse(img, xx, yy, start, bg, (ox, oy), 0.8)
     return params[:2]
 
 

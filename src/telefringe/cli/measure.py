@@ -164,7 +164,8 @@ def measure_plate_folder(out, *, rows: int = 9, cols: int = 11, pitch: float = 3
         m = measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch,
                           camera=None if calibration is None else calibration.rig.camera,
                           marker_diameter_mm=0.5 * pitch if diameter is None else diameter,
-                          noise=_expand(_stereo_noise(out, pf, "the plane's Z and tilt")))
+                          noise=_expand(_stereo_noise(out, pf, "the plane's Z and tilt")),
+                          centres_sigma_px=det.center_sigma)
     except _metrology_errors() as exc:
         _fail(out, exc)
     from telefringe.metrology.uncertainty import plate_uncertainty

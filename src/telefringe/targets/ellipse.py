@@ -253,7 +253,16 @@ def _fit_blurred_ellipse(win, xx, yy, params, bg, origin, depth, *, max_iter=15)
     The model is evaluated at the pixel centres, so its error does not depend on where
     the edge falls within a pixel (the interpolation of edge crossings does, and leaves a
     bias of about 0.01 px on 20-40 px markers). ``params`` (x_c, y_c, a, b, theta) is the
-    start. Returns (params (5,), residual rms relative to the background) or None.
+    start. Returns (params (5,), residual rms relative to the background, centre
+    covariance (2, 2) px^2) or None.
+
+    The centre's covariance is the fit's, ``s^2 (J^T J)^-1`` with ``s^2`` the residuals'
+    variance (cost over the n - 10 degrees of freedom) at the solution: the image noise
+    and whatever of the image the model does not fit, taken as independent per pixel.
+    On markers rendered by the fast virtual rig with its noise, the centres' RMS error
+    over sigma is 0.84 (u) and 0.91 (v) with 21 x 21 edge sub-samples, 1.01 and 1.21 with
+    the renderer's default 7 x 7, whose midpoint integration adds an error of its own
+    (benchmarks/detector_bias.py; tests/test_spacing_centre_sigma.py).
     """
     xc, yc, a, b, th = params
     c, s_ = np.cos(th), np.sin(th)
@@ -300,4 +309,10 @@ def _fit_blurred_ellipse(win, xx, yy, params, bg, origin, depth, *, max_iter=15)
         return None
     out = np.array([theta[0] + ox, theta[1] + oy, *axes])
     rms = float(np.sqrt(cost / z.size)) / max(abs(theta[7]), 1e-12)
-    return out, rms
+    try:  # A is the normal matrix at theta (updated with every accepted step)
+        cov = cost / (z.size - theta.size) * np.linalg.inv(A)[:2, :2]
+    except np.linalg.LinAlgError:
+        return None
+    if not (np.all(np.isfinite(cov)) and cov[0, 0] >= 0 and cov[1, 1] >= 0):
+        return None
+    return out, rms, cov
