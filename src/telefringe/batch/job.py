@@ -165,7 +165,45 @@ def _numba_threads(n: int | None):
 # ----------------------------------------------------------------------------- measure
 def _measure(rec, options: BatchOptions, rig=None):
     """(measurement, summary dict) of a reconstruction; (None, {}) for 'none'. ``rig``
-    (the rig that made it): its camera corrects the plate's detected marker centres."""
+    (the rig that made it): its camera corrects the plate's detected marker centres; a
+    RigCalibration with a parameter covariance (a calibrated rig.json) adds the
+    calibration's part to each figure's uncertainty, as ``telefringe measure --rig``
+    does."""
+    measurement, summary = _measure_only(rec, options, rig)
+    cal = _calibration_of(rig)
+    if measurement is None or cal is None:
+        return measurement, summary
+    from telefringe.io import reports
+    from telefringe.metrology import uncertainty as mu
+
+    fn = {"plate": mu.plate_uncertainty, "sphere": mu.sphere_uncertainty,
+          "steps": mu.steps_uncertainty, "bga": mu.bga_uncertainty}[options.measure]
+    measurement = fn(measurement, rec.cloud, cal)
+    if options.measure == "sphere":
+        summary = reports.sphere_summary(measurement.sphere, measurement.base,
+                                         region=measurement.region,
+                                         uncertainty=measurement.uncertainty)
+    else:
+        summary = getattr(reports, f"{options.measure}_summary")(measurement)
+    return measurement, summary
+
+
+def _calibration_of(rig):
+    """``rig`` where it carries a finite parameter covariance (a RigCalibration from a
+    calibrated rig.json), else None (a bare rig: the figures' u then hold the noise)."""
+    import numpy as np
+
+    cov = getattr(rig, "covariance", None)
+    if cov is None or not hasattr(rig, "parameter_names"):
+        return None
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.size == 0 or not np.all(np.isfinite(cov)):
+        return None
+    return rig
+
+
+def _measure_only(rec, options: BatchOptions, rig=None):
+    """(measurement, summary dict) with the noise's uncertainty alone."""
     from telefringe.io import reports
 
     m = options.measure
@@ -196,7 +234,7 @@ def _measure(rec, options: BatchOptions, rig=None):
         # markers half the pitch across (the plate telefringe simulates, as the paper's)
         pm = measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch,
                            camera=None if rig is None else rig.camera,
-                           marker_diameter_mm=0.5 * pitch)
+                           marker_diameter_mm=0.5 * pitch, centres_sigma_px=det.center_sigma)
         return pm, reports.plate_summary(pm)
     from telefringe.metrology import BGANominal, BGAOptions, measure_bga
 

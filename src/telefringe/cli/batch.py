@@ -80,7 +80,10 @@ def batch_cmd(
     one on this machine by default, or the running one at --scheduler); the rig is read
     once and sent once to each worker. Writes OUT/results.parquet and OUT/results.csv (a
     row per scan: status, one-line error, timings, the measurement's figures and their
-    uncertainties as '<measure>.<field>') and OUT/scans/NAME/ per scan (points.npz,
+    uncertainties as '<measure>.<field>'; with a calibrated rig.json, which carries its
+    parameter covariance, the uncertainties include the calibration's part as `telefringe
+    measure --rig` gives them, '<measure>.uncertainty.<quantity>.u' etc.) and
+    OUT/scans/NAME/ per scan (points.npz,
     height map, measurement.json, bga.csv, row.json). Each output appears complete or not
     at all; OUT/results.partial.jsonl holds the finished rows while the batch runs.
 
