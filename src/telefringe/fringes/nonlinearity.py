@@ -768,8 +768,8 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
     matrix, chi2) of the last evaluated iterate. Outliers are rejected from the first
     iteration on when ``reject_first`` (a good start), else from the second. With
     ``final`` (the pass whose iterate is the result), running out of the ``max_it - 1``
-    steps before a convergence test passes is reported in ``notes`` (a line ending with
-    :data:`_NOT_CONVERGED`).
+    steps before a convergence test passes, or a step no halving keeps invertible, is
+    reported in ``notes`` as a line ending with :data:`_NOT_CONVERGED`.
 
     Errors in variables: the regressors are evaluated at the true-phase estimates, which
     carry the very noise that is in the residual. Least squares then learns the
@@ -903,7 +903,8 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         else:
             if notes is not None:
                 notes.append(f"Gauss-Newton stopped at iteration {it + 1}: no step kept the "
-                             f"model invertible after 20 halvings {_NOT_CONVERGED}")
+                             "model invertible after 20 halvings "
+                             + (_NOT_CONVERGED if final else "(a later pass goes on)"))
             break
         coef = coef + step
         models = trial
