@@ -52,9 +52,13 @@ Measured (2026-12-02, load 10-18 on 2 cores; z RMS of centre x, y, z, radius):
 - ``--seeds 30 --first 30 --modes learned,white,fixed-s2,shared-s2,split-s2``: learned
   1.17 0.97 1.25 1.29 (radius mean error +0.91 um, sd 1.51 um), white 1.07 1.02 1.17
   1.21 (sd 1.55 um), s^2 given 1.18 0.96 1.21 1.25 (mean +0.58, sd 1.03 um).
-- ``--seeds 1 --first 20 --modes quiet,quiet-fixed-s2``: noise-free, s^2 estimated
-  0.251 px^2 (renderer 0.298): centre z -1.09 um, radius +0.96 um; s^2 given: +0.02 and
-  +0.08 um. The systematic part is the s^2 estimate's bias.
+- ``--seeds 1 --first 20 --modes quiet,quiet-fixed-s2``: noise-free maps (with the
+  scan's noisy images), s^2 estimated 0.251 px^2 (renderer 0.298): centre z -1.09 um,
+  radius +0.96 um; s^2 given: +0.02 and +0.08 um. The systematic part is the s^2
+  estimate's bias.
+- ``--seeds 30 --first 30 --modes quiet-image``: 1.16 0.96 1.07 1.09 (radius mean
+  error +0.41 um, s^2 0.304): most of that bias is the noise of the brightness images
+  whose log-gradients the spread model takes (a noisy regressor shrinks s^2).
 """
 
 from __future__ import annotations

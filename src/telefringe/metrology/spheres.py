@@ -47,10 +47,14 @@ match), and the decoded errors are white at the decoder's sigma (variance 0.93-1
 sigma^2 at every view angle, neighbour correlation < 0.05). Over 30 more seeds (30-59)
 the z RMS is 1.25 / 1.29, white noise of the sigmas in place of the decoded errors 1.17
 / 1.21 (seeds 20-29 were a high draw: two s^2 estimates 3 sigma off). What stays is
-the s^2 estimate's bias: on the noise-free render the fit gives s^2 = 0.252 px^2 for
-the renderer's 0.298 and misses the centre's z by -1.12 um and the radius by +0.99 um
-(with s^2 given as 0.298: +0.02 and +0.08 um); over the 30 seeds the radius is off by
-+0.91 +- 0.28 um on average, 0.67 of its sigma, and scatters 1.11 times its sigma
+the s^2 estimate's bias, mostly from the brightness image's noise: its log-gradient
+enters the model's terms, and noise in a regressor shrinks its coefficient. The
+noise-free render's maps with the scans' noisy images give s^2 = 0.252 px^2 for the
+renderer's 0.298 and miss the centre's z by -1.12 um and the radius by +0.99 um; with
+the noise-free images s^2 = 0.284 and -0.37 / +0.39 um (the limb: at a 40-degree view
+limit 0.292 and +0.06 / +0.03 um); with s^2 given as 0.298, +0.02 / +0.08 um. Over the
+seeds 30-59 the radius is off by +0.91 +- 0.28 um on average (0.67 of its sigma; s^2
+0.280); the noise-free images instead give +0.41 um, s^2 0.304 and z RMS 1.07 / 1.09
 (``benchmarks/stereo_sphere_seeds.py``).
 """
 
