@@ -31,6 +31,7 @@ The pre-compensation path (a measured response, inverted before projecting) is i
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -70,6 +71,12 @@ _MAX_CONTRACTION = 0.25
 #: phase by about 1 % of its noise (1e5 samples, ~10 coefficients per group), so this
 #: moves it by ~2e-4 of the noise (tests/test_learn_gamma.py bounds it at 1e-3)
 _REMAINING = 0.02
+
+#: how a note of :attr:`PhaseErrorFit.warnings` saying that the fit did not converge
+#: ends (:func:`fit_phase_errors` also issues those notes as a RuntimeWarning)
+_NOT_CONVERGED = "(not converged)"
+#: how the note of a fit that ran out of Gauss-Newton steps begins
+_OUT_OF_STEPS = "Gauss-Newton took its"
 
 #: largest move (in standard errors) of a coefficient by the linearised start of a refit
 #: (see :func:`_conditioned_start`)
@@ -472,6 +479,7 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
         sb = ones if sig is None else sig[b]
         pairs.append((a, b, r, sa, sb, ka, kb))
 
+    final_notes = len(notes)  # where the notes of the fit whose models are the result begin
     models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject,
                                      notes=notes)
     if cov is not None and np.isfinite(max_inflation):
@@ -484,6 +492,7 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
         if pruned != harm:
             start = _conditioned_start(models, cov, harm, pruned)
             harm = pruned
+            final_notes = len(notes)
             models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject,
                                              start=start, notes=notes)
     if significance > 0 and cov is not None:
@@ -505,9 +514,17 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
                     kept.append(m)
             pruned.append(kept)
         if pruned != harm:
+            final_notes = len(notes)
             models, rms, nkeep, _ = _solve(samp, per, pruned, pairs, iterations, reject,
                                            start=_conditioned_start(models, cov, harm,
                                                                     pruned), notes=notes)
+    # a refit's start may come from a fit that ran out of steps (common when harmonics are
+    # then dropped): only the iteration of the fit that gave the result counts
+    stalled = [x for x in notes[final_notes:] if x.endswith(_NOT_CONVERGED)]
+    notes[:final_notes] = [x for x in notes[:final_notes] if not x.startswith(_OUT_OF_STEPS)]
+    if stalled:
+        warnings.warn(f"fit_phase_errors (periods {per}): " + "; ".join(stalled),
+                      RuntimeWarning, stacklevel=2)
     return PhaseErrorFit(tuple(models), rms, nkeep, coverage=coverage,
                          warnings=tuple(dict.fromkeys(notes)))
 
@@ -718,7 +735,8 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
     good_start = stride > 1 or start is not None
     coef, rms, total_keep, ata, chi2 = _gauss_newton(samp, per, harm, harm_arr, offs, pairs,
                                                      coef, max_it, reject, tol=1e-7,
-                                                     reject_first=good_start, notes=notes)
+                                                     reject_first=good_start, notes=notes,
+                                                     final=True)
     models = _models(per, harm, offs, coef)
     s2 = chi2 / max(total_keep - n_par, 1)
     ridge = 1e-9 * np.trace(ata) / n_par + 1e-300
@@ -745,10 +763,13 @@ def _models(per, harm, offs, coef):
 
 
 def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, *, tol,
-                  reject_first, notes=None):
+                  reject_first, notes=None, final=False):
     """Iterations of :func:`_solve` from ``coef``; returns (coef, rms, samples kept, normal
     matrix, chi2) of the last evaluated iterate. Outliers are rejected from the first
-    iteration on when ``reject_first`` (a good start), else from the second.
+    iteration on when ``reject_first`` (a good start), else from the second. With
+    ``final`` (the pass whose iterate is the result), running out of the ``max_it - 1``
+    steps before a convergence test passes, or a step no halving keeps invertible, is
+    reported in ``notes`` as a line ending with :data:`_NOT_CONVERGED`.
 
     Errors in variables: the regressors are evaluated at the true-phase estimates, which
     carry the very noise that is in the residual. Least squares then learns the
@@ -865,6 +886,11 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
             atb[offs[a]:offs[a + 1]] -= s2 * stein[j, 0, :na]
             atb[offs[b]:offs[b + 1]] -= s2 * stein[j, 1, :nb_]
         if it == max_it - 1:
+            if final and notes is not None:
+                notes.append(f"{_OUT_OF_STEPS} {max_it - 1} steps without meeting a "
+                             f"convergence test (the last moved a coefficient by {last:.3g} "
+                             f"of its standard errors, converged is <= {_REMAINING:g}); the "
+                             f"model is the last iterate {_NOT_CONVERGED}")
             break
         # a tiny ridge keeps poorly covered harmonics (partial phase coverage) bounded
         ridge = 1e-9 * np.trace(ata) / n_par + 1e-300
@@ -877,7 +903,8 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         else:
             if notes is not None:
                 notes.append(f"Gauss-Newton stopped at iteration {it + 1}: no step kept the "
-                             "model invertible after 20 halvings (not converged)")
+                             "model invertible after 20 halvings "
+                             + (_NOT_CONVERGED if final else "(a later pass goes on)"))
             break
         coef = coef + step
         models = trial

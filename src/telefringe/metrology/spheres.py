@@ -39,10 +39,23 @@ camera, so their noise is correlated; given the match's noise split
 (:func:`_sandwich`), 6-9 % larger in every sigma (z RMS 1.63 and 1.63 over the same
 seeds): not the main cause. White noise of the decoded sigmas on the exact phase maps
 gives z RMS 1.13 / 1.08 (59 draws), on the seeds' mean decoded maps 0.73 / 0.74 (16
-draws). The rest is the decoder's per-scan correction of the projector's nonlinearity
-(learned from each scan without calibrated ``phase_errors``): its estimate's noise is a
-whole-image error at 4 times the fringe phase, outside the per-pixel sigma (white noise
-of the sigma in place of the first camera's rendered noise: z RMS 0.97 / 1.01).
+draws). It is not the decoder's per-scan correction of the projector's nonlinearity:
+with each camera's model from a noise-free render instead, or no correction at all, the
+same seeds give z RMS 1.64 / 1.64 and 1.61 / 1.60 (the learned model moves the radius
+by 0.04 um RMS: a phase error both cameras share at one projector phase cancels in the
+match), and the decoded errors are white at the decoder's sigma (variance 0.93-1.05
+sigma^2 at every view angle, neighbour correlation < 0.05). Over 30 more seeds (30-59)
+the z RMS is 1.25 / 1.29, white noise of the sigmas in place of the decoded errors 1.17
+/ 1.21 (seeds 20-29 were a high draw: two s^2 estimates 3 sigma off). What stays is
+the s^2 estimate's bias, mostly from the brightness image's noise: its log-gradient
+enters the model's terms, and noise in a regressor shrinks its coefficient. The
+noise-free render's maps with the scans' noisy images give s^2 = 0.252 px^2 for the
+renderer's 0.298 and miss the centre's z by -1.12 um and the radius by +0.99 um; with
+the noise-free images s^2 = 0.284 and -0.37 / +0.39 um (the limb: at a 40-degree view
+limit 0.292 and +0.06 / +0.03 um); with s^2 given as 0.298, +0.02 / +0.08 um. Over the
+seeds 30-59 the radius is off by +0.91 +- 0.28 um on average (0.67 of its sigma; s^2
+0.280); the noise-free images instead give +0.41 um, s^2 0.304 and z RMS 1.07 / 1.09
+(``benchmarks/stereo_sphere_seeds.py``).
 """
 
 from __future__ import annotations

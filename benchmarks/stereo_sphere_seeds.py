@@ -1,0 +1,269 @@
+"""The stereo sphere's uncertainty over noise seeds, by how the projector's nonlinearity
+(gamma) is corrected (issue 11).
+
+Usage: python benchmarks/stereo_sphere_seeds.py [--bin 4] [--seeds 10] [--first 20]
+    [--modes learned,shared,true,none]
+
+The ``stereo`` preset's default sphere is rendered with ``--seeds`` noise seeds (from
+``--first``) and measured with the TRUE rig (no calibration error) as ``measure sphere``
+does with two cameras: matched (``match_stereo``), fitted through the point-spread model
+with the match's correlated noise (``match_noise``). Each scan is decoded with the
+camera's noise model and the gamma correction
+
+- ``learned``: learned from each camera's own scan (the decoder's default without a
+  calibration; the two cameras' estimates differ by their noise);
+- ``shared``: learned from the first camera's scan and given to both (one estimate: a
+  phase error common to both cameras at the same projector phase cancels in the match);
+- ``true``: each camera's model learned from a noise-free render of the same scene
+  (the population value, no estimation noise);
+- ``none``: no correction.
+
+Diagnostics (the gamma learned per scan, as ``learned``), to find what else the
+predicted uncertainty misses:
+
+- ``quiet-image``: the point-spread model's brightness images (``image``, ``image_2``)
+  from a noise-free render (the points keep their noise);
+- ``fixed-s2``: the spread variance given (the renderer's, ``psf_variance``) instead of
+  estimated with the sphere;
+- ``white``: each camera's decoded map of the noise-free render plus white Gaussian
+  noise of this scan's decoded sigmas (every systematic effect kept, the noise exactly
+  what the model says);
+- ``white-1`` / ``white-2``: that for the first / second camera only;
+- ``quiet``: both maps of the noise-free render (no noise at all; this scan's sigmas);
+  ``quiet-fixed-s2``: and the spread variance given;
+- ``shuffled``: the noise-free maps plus this scan's own decoding errors (decoded minus
+  noise-free map, over sigma), shuffled among the pixels (the same values, their
+  places random);
+- ``no-reject``: the robust fit's rejection of points off (``reject_k`` 1e9);
+- ``shared-s2`` / ``split-s2``: one spread variance for both cameras / one each
+  (``psf_shared`` True / False) instead of as the data decide.
+
+Printed per mode: each seed's errors (um), predicted sigmas and z-scores of the centre
+(x, y, z) and the radius, the spread variance s^2 (px^2) and the sandwich's residual
+scale k, then over the seeds the RMS of the z-scores (error / predicted sigma): ~1 when
+the predicted uncertainty holds, the mean error (um) and its spread.
+
+Measured (2026-12-02, load 10-18 on 2 cores; z RMS of centre x, y, z, radius):
+
+- ``--seeds 10 --first 20``: learned 0.76 0.95 1.63 1.63, shared 0.77 0.95 1.64 1.64,
+  true 0.75 0.93 1.64 1.64, none 0.70 0.94 1.61 1.60: the gamma correction is not the
+  cause (learned minus true: 0.038 um RMS on the radius, whose sigma is 1.33 um).
+  White noise 1.01 1.16 1.07 1.08; noise-free images 1.64 / 1.60; s^2 given 1.14 / 1.10.
+- ``--seeds 30 --first 30 --modes learned,white,fixed-s2,shared-s2,split-s2``: learned
+  1.17 0.97 1.25 1.29 (radius mean error +0.91 um, sd 1.51 um), white 1.07 1.02 1.17
+  1.21 (sd 1.55 um), s^2 given 1.18 0.96 1.21 1.25 (mean +0.58, sd 1.03 um).
+- ``--seeds 1 --first 20 --modes quiet,quiet-fixed-s2``: noise-free maps (with the
+  scan's noisy images), s^2 estimated 0.251 px^2 (renderer 0.298): centre z -1.09 um,
+  radius +0.96 um; s^2 given: +0.02 and +0.08 um. The systematic part is the s^2
+  estimate's bias.
+- ``--seeds 30 --first 30 --modes quiet-image``: 1.16 0.96 1.07 1.09 (radius mean
+  error +0.41 um, s^2 0.304): most of that bias is the noise of the brightness images
+  whose log-gradients the spread model takes (a noisy regressor shrinks s^2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def _models(coords) -> dict:
+    """The models a decode learned, keyed as ``decode(phase_errors=...)`` takes them."""
+    out = {}
+    for axis, ax in coords.axes.items():
+        fit = ax.phase_errors
+        if fit is None:
+            continue
+        for m in fit.models:
+            out[(axis, int(m.periods), 4)] = m
+    return out
+
+
+@dataclass(frozen=True)
+class _Maps:
+    u_p: np.ndarray
+    v_p: np.ndarray
+    mask: np.ndarray
+    sigma_u_p: np.ndarray
+    sigma_v_p: np.ndarray
+
+
+def _white(quiet, noisy, rng) -> _Maps:
+    """The noise-free decode ``quiet`` plus white noise of ``noisy``'s sigmas, valid
+    where both are."""
+    m = quiet.mask & noisy.mask
+    u = np.where(m, quiet.u_p + noisy.sigma_u_p * rng.standard_normal(m.shape), np.nan)
+    v = np.where(m, quiet.v_p + noisy.sigma_v_p * rng.standard_normal(m.shape), np.nan)
+    return _Maps(u, v, m, np.where(m, noisy.sigma_u_p, np.nan),
+                 np.where(m, noisy.sigma_v_p, np.nan))
+
+
+def _shuffled(quiet, noisy, rng) -> _Maps:
+    """The noise-free decode plus ``noisy``'s own normalised errors, permuted among the
+    pixels valid in both, times each pixel's sigma."""
+    m = quiet.mask & noisy.mask
+    out = []
+    for ax in ("u", "v"):
+        q, x = getattr(quiet, ax + "_p"), getattr(noisy, ax + "_p")
+        s = getattr(noisy, f"sigma_{ax}_p")
+        z = ((x - q) / s)[m]
+        full = np.full(m.shape, np.nan)
+        full[m] = q[m] + s[m] * rng.permutation(z)
+        out.append(full)
+    return _Maps(out[0], out[1], m, np.where(m, noisy.sigma_u_p, np.nan),
+                 np.where(m, noisy.sigma_v_p, np.nan))
+
+
+#: the scale factor k of the last sandwich covariance (see ``_record_scale``)
+_SCALE: list = []
+
+
+def _record_scale():
+    """Wrap ``spheres._sandwich`` to record its scale ``k = f'f / tr((I - H) C)`` (the
+    residuals over what the noise model predicts for them) in ``_SCALE``."""
+    from telefringe.metrology import spheres
+
+    orig = spheres._sandwich
+
+    def wrapped(J, a, Ninv, f, var_own, weights, sources):
+        # with f'f = 1 the result is Ninv J'CJ Ninv / d, d = tr(C) - tr(H C) = tr(C) -
+        # d tr(N unit) (N = inv(Ninv)): d = tr(C) / (1 + tr(N unit)), k = f'f / d
+        unit = orig(J, a, Ninv, np.ones(1), var_own, weights, sources)
+        use = sources >= 0
+        tr_c = float(np.sum(a * a * (var_own + np.sum(np.where(use, weights, 0.0) ** 2,
+                                                        axis=1))))
+        d = tr_c / (1.0 + float(np.trace(np.linalg.inv(Ninv) @ unit)))
+        _SCALE.append(float(f @ f) / d)
+        return orig(J, a, Ninv, f, var_own, weights, sources)
+
+    spheres._sandwich = wrapped
+
+
+def _s2_true(vrig) -> float:
+    """The renderer's point-spread variance (camera px^2): the pixel's box and the
+    defocus kernel."""
+    from telefringe.simulate.render import _blur_kernel
+
+    k = _blur_kernel(vrig.photometry.camera_blur_px)
+    x = np.arange(k.size) - k.size // 2
+    return 1.0 / 12.0 + float(np.sum(k * x * x))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--bin", type=int, default=4)
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--first", type=int, default=20)
+    ap.add_argument("--modes", default="learned,shared,true,none")
+    args = ap.parse_args()
+    import functools
+
+    from telefringe.fringes.decode import decode
+    from telefringe.fringes.images import scan_radiance
+    from telefringe.metrology import spheres
+    from telefringe.metrology.spheres import finest_fringe_periods, measure_sphere
+    from telefringe.reconstruction.stereo import match_noise, match_stereo
+    from telefringe.simulate.anyrig import scan_scene
+    from telefringe.simulate.presets import bin_camera_any, get_preset
+    from telefringe.simulate.scenes import default_sphere
+
+    modes = args.modes.split(",")
+    _record_scale()
+    vrig = bin_camera_any(get_preset("stereo"), args.bin)
+    names = vrig.rig.camera_names
+    noise = vrig.photometry.noise_model()
+    sph = default_sphere()
+    truth = np.r_[sph.center, sph.radius]
+    geoms: dict = {}
+    quiet = vrig.with_photometry(full_well_e=1e12, read_noise_e=0.0, bit_depth=16)
+    scans0, _ = scan_scene(quiet, sph, seed=0)
+    decoded0 = {c: decode(s, noise=noise) for c, s in scans0.items()}
+    true_models = {c: _models(d) for c, d in decoded0.items()}
+    images0 = {c: scan_radiance(s) for c, s in scans0.items()}
+    z_all = {m: [] for m in modes}
+    e_all = {m: [] for m in modes}
+    t0, c0 = time.perf_counter(), time.process_time()
+    for k in range(args.seeds):
+        seed = args.first + k
+        scans, _ = scan_scene(vrig, sph, seed=seed, geometries=geoms)
+        kw = {"rig": vrig.rig, "image": scan_radiance(scans[names[0]]),
+              "image_2": scan_radiance(scans[names[1]]),
+              "fringe_periods": finest_fringe_periods(scans[names[0]].manifest)}
+        learned = {c: decode(s, noise=noise) for c, s in scans.items()}
+        for mode in modes:
+            if mode == "learned":
+                coords = learned
+            elif mode == "shared":
+                pe = _models(learned[names[0]])
+                coords = {names[0]: learned[names[0]],
+                          names[1]: decode(scans[names[1]], noise=noise, phase_errors=pe)}
+            elif mode == "true":
+                coords = {c: decode(s, noise=noise, phase_errors=true_models[c])
+                          for c, s in scans.items()}
+            elif mode == "none":
+                coords = {c: decode(s, noise=noise, gamma_correction=False)
+                          for c, s in scans.items()}
+            elif mode in ("quiet-image", "fixed-s2", "shared-s2", "split-s2", "no-reject"):
+                coords = learned
+            elif mode.startswith("white"):
+                rng = np.random.default_rng(1000 + seed)
+                which = {"white": names, "white-1": names[:1], "white-2": names[1:]}[mode]
+                coords = {c: _white(decoded0[c], learned[c], rng) if c in which
+                          else learned[c] for c in names}
+            elif mode in ("quiet", "quiet-fixed-s2"):
+                coords = {c: _Maps(decoded0[c].u_p, decoded0[c].v_p,
+                                   decoded0[c].mask & learned[c].mask, learned[c].sigma_u_p,
+                                   learned[c].sigma_v_p) for c in names}
+            elif mode == "shuffled":
+                rng = np.random.default_rng(2000 + seed)
+                coords = {c: _shuffled(decoded0[c], learned[c], rng) for c in names}
+            else:
+                raise SystemExit(f"unknown mode {mode}")
+            opts = dict(kw)
+            if mode == "quiet-image":
+                opts["image"], opts["image_2"] = images0[names[0]], images0[names[1]]
+            if mode in ("fixed-s2", "quiet-fixed-s2"):
+                opts["psf_variance"] = _s2_true(vrig)
+            if mode in ("shared-s2", "split-s2"):
+                opts["psf_shared"] = mode == "shared-s2"
+            c1, c2 = coords[names[0]], coords[names[1]]
+            m = match_stereo(vrig.rig, c1, c2)
+            spread = spheres._measure_with_spread
+            if mode == "no-reject":
+                spheres._measure_with_spread = functools.partial(spread, reject_k=1e9)
+            try:
+                meas = measure_sphere(m.cloud, noise=match_noise(vrig.rig, c1, c2, m),
+                                      **opts)
+            finally:
+                spheres._measure_with_spread = spread
+            fit, sp = meas.sphere, meas.spread
+            est = np.r_[fit.centre, fit.radius]
+            sig = np.r_[fit.sigma_centre, fit.sigma_radius]
+            e_all[mode].append(est - truth)
+            z_all[mode].append((est - truth) / sig)
+            print(f"seed {seed} {mode:<8} error (x, y, z, r) "
+                  + " ".join(f"{v * 1e3:+7.3f}" for v in est - truth)
+                  + " um  sigma " + " ".join(f"{v * 1e3:.3f}" for v in sig)
+                  + "  z " + " ".join(f"{v:+6.2f}" for v in (est - truth) / sig)
+                  + f"  s2 {sp.variance_px2:.3f} +- {sp.sigma_variance_px2:.3f}"
+                  + ("" if sp.shared else f", {sp.variance_2_px2:.3f} +- "
+                     f"{sp.sigma_variance_2_px2:.3f}")
+                  + f"  ({fit.n_inliers} of {fit.n_points} points, k {_SCALE[-1]:.2f})",
+                  flush=True)
+    print(f"({time.perf_counter() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU)")
+    print(f"over {args.seeds} seeds ({args.first}..{args.first + args.seeds - 1}), true rig, "
+          f"stereo preset binned {args.bin}:")
+    for mode in modes:
+        z = np.array(z_all[mode])
+        e = np.array(e_all[mode]) * 1e3
+        print(f"  {mode:<8} z RMS (x, y, z, r) "
+              + " ".join(f"{v:.2f}" for v in np.sqrt(np.mean(z ** 2, axis=0)))
+              + "   mean error " + " ".join(f"{v:+.2f}" for v in e.mean(axis=0))
+              + " um   sd " + " ".join(f"{v:.2f}" for v in e.std(axis=0, ddof=1)) + " um")
+
+
+if __name__ == "__main__":
+    main()
