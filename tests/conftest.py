@@ -74,11 +74,14 @@ def _share_numba_compilations_between_workers() -> None:
     compile_ = Dispatcher.compile
 
     def compile_once(self, sig):
-        cache = self._cache
-        if isinstance(cache, NullCache):
+        cache = getattr(self, "_cache", None)
+        try:  # numba's private cache layout: a numba without it compiles as always
+            if cache is None or isinstance(cache, NullCache):
+                return compile_(self, sig)
+            name = os.path.join(cache._cache_path, cache._impl.filename_base)
+        except AttributeError:
             return compile_(self, sig)
-        key = hashlib.sha256(os.path.join(cache._cache_path, cache._impl.filename_base)
-                             .encode()).hexdigest()[:24]
+        key = hashlib.sha256(name.encode()).hexdigest()[:24]
         with global_compiler_lock:
             if key in held:  # a nested compilation of the same kernel in this process
                 return compile_(self, sig)
