@@ -75,11 +75,13 @@ def _share_numba_compilations_between_workers() -> None:
 
     def compile_once(self, sig):
         cache = getattr(self, "_cache", None)
-        try:  # numba's private cache layout: a numba without it compiles as always
-            if cache is None or isinstance(cache, NullCache):
-                return compile_(self, sig)
-            name = os.path.join(cache._cache_path, cache._impl.filename_base)
-        except AttributeError:
+        name = None
+        if cache is not None and not isinstance(cache, NullCache):
+            try:  # numba's private cache layout: a numba without it compiles as always
+                name = os.path.join(cache._cache_path, cache._impl.filename_base)
+            except AttributeError:
+                name = None
+        if name is None:
             return compile_(self, sig)
         key = hashlib.sha256(name.encode()).hexdigest()[:24]
         with global_compiler_lock:
