@@ -147,13 +147,15 @@ print(f"    {'total (after the interpreter started)':<44s} {prev - t0:6.2f} {cpr
 _COLD = r"""
 import sys, time
 from telefringe.cli import main
-rc = main(sys.argv[2:])
+stats = sys.argv[1]
+sys.argv = ["telefringe", *sys.argv[2:]]
+rc = main()  # as the command runs it (no argv: the process ends after it)
 try:
     with open("/proc/thread-self/schedstat") as f:
         wait = int(f.read().split()[1]) / 1e9
 except OSError:
     wait = float("nan")
-with open(sys.argv[1], "w") as f:
+with open(stats, "w") as f:
     f.write(f"{time.process_time()} {wait}")
 sys.exit(rc)
 """

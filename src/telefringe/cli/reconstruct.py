@@ -131,6 +131,54 @@ def _prefetch(*modules: str):
     return t
 
 
+def _load_numba_target() -> None:
+    """Load numba's CPU target now, without importing scipy.linalg.
+
+    The first compiled kernel a process runs (cached or not) loads numba's CPU target,
+    which imports all of numba's implementations; ``numba.np.arraymath`` among them checks
+    that BLAS is there by importing ``scipy.linalg.cython_blas``, i.e. all of
+    scipy.linalg (with scipy's array-API layer, numpy.f2py, ...: ~0.15-0.3 s CPU of the
+    command's cold start, for BLAS the reconstruction never calls). Here that check looks
+    for the ``cython_blas`` extension module in scipy's folder instead, without importing
+    it (numba's check of the LAPACK integer width still runs); numba's compiled BLAS
+    calls import it at their first call, as they always do. A no-op where numba differs
+    or once its target is loaded.
+    """
+    import os
+    import sys
+
+    if "numba.np.arraymath" in sys.modules or "scipy.linalg" in sys.modules:
+        return
+    try:
+        import scipy
+        from numba.core.registry import cpu_target
+        from numba.np import linalg as np_linalg
+    except ImportError:
+        return
+    original = getattr(np_linalg, "ensure_blas", None)
+    check_width = getattr(np_linalg, "_check_lapack_int_width", None)
+    target = getattr(cpu_target, "target_context", None)
+    if None in (original, check_width, getattr(target, "refresh", None)):
+        return
+
+    def ensure_blas():
+        import importlib.machinery
+
+        where = [os.path.join(d, "linalg") for d in scipy.__path__]
+        if importlib.machinery.PathFinder.find_spec("cython_blas", where) is None:
+            raise ImportError("scipy 0.16+ is required for linear algebra")  # as numba
+        check_width()
+
+    np_linalg.ensure_blas = ensure_blas
+    try:
+        target.refresh()
+    finally:
+        np_linalg.ensure_blas = original
+        arraymath = sys.modules.get("numba.np.arraymath")
+        if getattr(arraymath, "ensure_blas", None) is ensure_blas:
+            arraymath.ensure_blas = original
+
+
 def _read_ahead(*folders):
     """Begin reading the scan ``folders`` on a background thread; return
     ``read(folder) -> Scan``, which waits for that folder and raises its reading error.
@@ -242,6 +290,7 @@ def reconstruct_cmd(
     from telefringe.io.rig_json import load_rig
 
     read = _read_ahead(*((scan,) if second is None else (scan, second)))
+    _load_numba_target()
     try:  # the errors as before: the rig's, the output folder's, then the scan's
         rig_obj = load_rig(rig)
         n_cams = len(getattr(getattr(rig_obj, "rig", rig_obj), "cameras", ()))
