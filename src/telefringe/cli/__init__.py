@@ -205,8 +205,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(argv: list[str]) -> int:
     """:func:`main` with its arguments."""
-    from rich.markup import escape
-
     from telefringe.io.errors import InputError
 
     state.debug = "--debug" in argv
@@ -215,6 +213,8 @@ def _run(argv: list[str]) -> int:
     except InputError as exc:
         if state.debug:
             raise
+        from rich.markup import escape
+
         # escaped: messages quote fields like "[du, dv]", which are not rich markup
         err_console.print(f"[bold red]error:[/bold red] {escape(str(exc))}", soft_wrap=True)
         return 2
@@ -229,6 +229,8 @@ def _run(argv: list[str]) -> int:
     except OSError as exc:  # a file system problem (permission, disk full): no traceback
         if state.debug:
             raise
+        from rich.markup import escape
+
         err_console.print(f"[bold red]error:[/bold red] {escape(str(exc))}", soft_wrap=True)
         return 1
     except Exception as exc:

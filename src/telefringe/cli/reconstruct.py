@@ -341,6 +341,8 @@ def reconstruct_cmd(
 
 def _report_noise(choice) -> None:
     """One line on the camera noise model behind sigma (a warning for the default)."""
+    if state.quiet:  # (rich, for escape, not imported)
+        return
     from rich.markup import escape
 
     m = choice.model
