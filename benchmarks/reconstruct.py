@@ -37,10 +37,15 @@ What bounds each figure:
 - decode + triangulate: decoding (telefringe.fringes.decode: wrapped phase, unwrapping and, by
   default, fitting and removing the projector's gamma from the fringes); triangulation is
   a few percent of it.
-- cold start: Python + numpy + typer/rich imports, numba's start-up (importing numba, which
-  imports scipy.linalg, and initialising its compiler context: ~0.6 s CPU before the first
-  cached kernel loads; each of the ~7 kernels on the path then loads in ~0.02-0.05 s),
-  decoding, triangulating and the outputs; see the split.
+- cold start: Python + numpy + typer imports (rich only when it prints: not with -q),
+  importing numba (~0.25 s CPU; the command loads the cached kernels without numba's
+  registries of implementations, which would import scipy.linalg: -0.1 to -0.3 s), the
+  ~7 kernels on the path (~0.02-0.05 s each), decoding, the noise estimate (its chi^2
+  tails from a table, not scipy.special), triangulating, the outputs, and the process's
+  end (the command freezes the garbage collector at its end: the shutdown's collections
+  walked numba's objects for ~0.4 s CPU); see the split. The cold runs use bytecode caches
+  (as an installed package has them) unless --no-bytecode-cache: without them (e.g.
+  PYTHONDONTWRITEBYTECODE set) every run compiles telefringe's ~60 modules again.
 """
 
 from __future__ import annotations
@@ -103,8 +108,8 @@ from telefringe.io.points_npz import write_points
 from telefringe.io.tiff import write_height_tiff
 from telefringe.io.x3p import write_height_x3p
 mark("imports (cli, rig.json reader, decode, reconstruct)")
-from telefringe.cli.reconstruct import _load_numba_target
-_load_numba_target()  # as the command: numba's CPU target without scipy.linalg
+from telefringe.cli.reconstruct import _light_numba_cache_loads
+_light_numba_cache_loads()  # as the command: cached kernels without numba's registries
 from telefringe.geometry._distortion_kernels import undistort_point
 undistort_point(0.0, 0.0, 0.0, 0.0, 0.0)
 mark("numba start-up (one cached function)")
