@@ -1,7 +1,7 @@
 """Reconstruction speed: scan folder (12 images 1280 x 1024) + rig -> points.
 
 Usage: python benchmarks/reconstruct.py [--runs 5] [--scene tilted-plane] [--keep DIR]
-                                        [--no-cold-start]
+                                        [--no-cold-start] [--no-bytecode-cache]
 
 Renders one scan of the paper rig (4 steps x 1/8/64 periods along u, no white/black: 12
 images of 1280 x 1024, 8 bit), writes it as a scan folder with the TRUE rig's rig.json,
@@ -37,10 +37,15 @@ What bounds each figure:
 - decode + triangulate: decoding (telefringe.fringes.decode: wrapped phase, unwrapping and, by
   default, fitting and removing the projector's gamma from the fringes); triangulation is
   a few percent of it.
-- cold start: Python + numpy + typer/rich imports, numba's start-up (importing numba, which
-  imports scipy.linalg, and initialising its compiler context: ~0.6 s CPU before the first
-  cached kernel loads; each of the ~7 kernels on the path then loads in ~0.02-0.05 s),
-  decoding, triangulating and the outputs; see the split.
+- cold start: Python + numpy + typer imports (rich only when it prints: not with -q),
+  importing numba (~0.25 s CPU; the command loads the cached kernels without numba's
+  registries of implementations, which would import scipy.linalg: -0.1 to -0.3 s), the
+  ~7 kernels on the path (~0.02-0.05 s each), decoding, the noise estimate (its chi^2
+  tails from a table, not scipy.special), triangulating, the outputs, and the process's
+  end (the command freezes the garbage collector at its end: the shutdown's collections
+  walked numba's objects for ~0.4 s CPU); see the split. The cold runs use bytecode caches
+  (as an installed package has them) unless --no-bytecode-cache: without them (e.g.
+  PYTHONDONTWRITEBYTECODE set) every run compiles telefringe's ~60 modules again.
 """
 
 from __future__ import annotations
@@ -103,6 +108,8 @@ from telefringe.io.points_npz import write_points
 from telefringe.io.tiff import write_height_tiff
 from telefringe.io.x3p import write_height_x3p
 mark("imports (cli, rig.json reader, decode, reconstruct)")
+from telefringe.cli.reconstruct import _light_numba_cache_loads
+_light_numba_cache_loads()  # as the command: cached kernels without numba's registries
 from telefringe.geometry._distortion_kernels import undistort_point
 undistort_point(0.0, 0.0, 0.0, 0.0, 0.0)
 mark("numba start-up (one cached function)")
@@ -147,13 +154,15 @@ print(f"    {'total (after the interpreter started)':<44s} {prev - t0:6.2f} {cpr
 _COLD = r"""
 import sys, time
 from telefringe.cli import main
-rc = main(sys.argv[2:])
+stats = sys.argv[1]
+sys.argv = ["telefringe", *sys.argv[2:]]
+rc = main()  # as the command runs it (no argv: the process ends after it)
 try:
     with open("/proc/thread-self/schedstat") as f:
         wait = int(f.read().split()[1]) / 1e9
 except OSError:
     wait = float("nan")
-with open(sys.argv[1], "w") as f:
+with open(stats, "w") as f:
     f.write(f"{time.process_time()} {wait}")
 sys.exit(rc)
 """
@@ -166,6 +175,10 @@ def main() -> None:
     ap.add_argument("--keep", type=Path, default=None, help="Keep the scan folder here.")
     ap.add_argument("--no-cold-start", action="store_true",
                     help="Skip the cold-start runs (new processes).")
+    ap.add_argument("--no-bytecode-cache", action="store_true",
+                    help="Cold starts as the environment says (with PYTHONDONTWRITEBYTECODE "
+                         "set, every run compiles telefringe's modules from source) instead "
+                         "of with bytecode caches, as an installed package has them.")
     args = ap.parse_args()
 
     import numba
@@ -322,12 +335,25 @@ def main() -> None:
           f"{np.nanmedian(cloud.sigma_z) * 1000:.2f} um")
 
     if not args.no_cold_start:
+        # bytecode caches as an installed package has them (pip compiles the modules; an
+        # editable install writes them at the first import), unless the environment
+        # forbids writing them (PYTHONDONTWRITEBYTECODE): then in a folder of their own,
+        # written by a first run that is not timed
+        env = dict(os.environ)
+        caches = "as the environment has them"
+        if not args.no_bytecode_cache and env.pop("PYTHONDONTWRITEBYTECODE", None):
+            env["PYTHONPYCACHEPREFIX"] = str(root / "pycache")
+            caches = "on (PYTHONDONTWRITEBYTECODE set here: in a temporary folder)"
+        subprocess.run([sys.executable, "-c", _COLD, str(root / "cold_stats.txt"), "-q",
+                        "reconstruct", str(folder), "--rig", str(root / "rig_gamma.json"),
+                        "-o", str(root / "out"), "--force"], check=True, env=env)
         imp = []
         for _ in range(3):
             t0 = time.perf_counter()
-            subprocess.run([sys.executable, "-c", "import telefringe.cli"], check=True)
+            subprocess.run([sys.executable, "-c", "import telefringe.cli"], check=True,
+                           env=env)
             imp.append(time.perf_counter() - t0)
-        print(f"cold start ({_load()}), median of 3:")
+        print(f"cold start ({_load()}), median of 3, bytecode caches {caches}:")
         print(f"  python -c 'import telefringe.cli': {statistics.median(imp):.2f} s")
         stats = root / "cold_stats.txt"
         exe = [sys.executable, "-c", _COLD, str(stats)]
@@ -342,7 +368,7 @@ def main() -> None:
             for _ in range(3):
                 r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 t0 = time.perf_counter()
-                subprocess.run(full, check=True)
+                subprocess.run(full, check=True, env=env)
                 ts.append(time.perf_counter() - t0)
                 r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 cs.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
@@ -359,7 +385,7 @@ def main() -> None:
             print(f"  split (gamma: {mode}, one run, {_load()}):")
             with tempfile.TemporaryDirectory() as d:
                 subprocess.run([sys.executable, "-c", _SPLIT, str(root / rig_json),
-                                str(folder), d, mode], check=True)
+                                str(folder), d, mode], check=True, env=env)
     tmpdir.cleanup()
 
 

@@ -174,20 +174,47 @@ _plain_coercion()
 _register_all()
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point: run the app; user errors end with one line and exit status 2."""
-    from rich.markup import escape
+#: the collector's first threshold while the command runs as a program (Python's default
+#: is 700 allocations): the start-up's ~100 000 objects are long-lived, and collecting
+#: every 700 allocations among them took ~0.1 s CPU of a cold ``telefringe reconstruct``
+_GC_THRESHOLD_0 = 10_000
 
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: run the app; user errors end with one line and exit status 2.
+
+    Without ``argv`` (the ``telefringe`` command, ``python -m telefringe``: the process
+    ends after it), the garbage collector is tuned for a short-lived process: the objects
+    made so far (the imports) are frozen and collections come less often while the command
+    runs, and everything is frozen at its end, so that the collections of the
+    interpreter's shutdown do not walk numba's hundred thousand objects (~0.4 s CPU at
+    exit). Finalisation is otherwise unchanged (atexit handlers, flushed streams). With
+    ``argv`` (tests, programs calling it), the caller's collector is left alone.
+    """
+    if argv is not None:
+        return _run(argv)
+    import gc
+
+    gc.freeze()
+    gc.set_threshold(max(gc.get_threshold()[0], _GC_THRESHOLD_0), *gc.get_threshold()[1:])
+    try:
+        return _run(sys.argv[1:])
+    finally:
+        gc.freeze()
+
+
+def _run(argv: list[str]) -> int:
+    """:func:`main` with its arguments."""
     from telefringe.io.errors import InputError
 
-    if argv is None:
-        argv = sys.argv[1:]
     state.debug = "--debug" in argv
     try:
         rv = app(args=argv, prog_name="telefringe", standalone_mode=False)
     except InputError as exc:
         if state.debug:
             raise
+        from rich.markup import escape
+
         # escaped: messages quote fields like "[du, dv]", which are not rich markup
         err_console.print(f"[bold red]error:[/bold red] {escape(str(exc))}", soft_wrap=True)
         return 2
@@ -202,6 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # a file system problem (permission, disk full): no traceback
         if state.debug:
             raise
+        from rich.markup import escape
+
         err_console.print(f"[bold red]error:[/bold red] {escape(str(exc))}", soft_wrap=True)
         return 1
     except Exception as exc:

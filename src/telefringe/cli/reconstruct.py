@@ -144,6 +144,99 @@ def _prefetch(*modules: str):
     return t
 
 
+def _load_numba_target() -> None:
+    """Load numba's CPU target now, without importing scipy.linalg.
+
+    The first compiled kernel a process runs (cached or not) loads numba's CPU target,
+    which imports all of numba's implementations; ``numba.np.arraymath`` among them checks
+    that BLAS is there by importing ``scipy.linalg.cython_blas``, i.e. all of
+    scipy.linalg (with scipy's array-API layer, numpy.f2py, ...: ~0.15-0.3 s CPU of the
+    command's cold start, for BLAS the reconstruction never calls). Here that check looks
+    for the ``cython_blas`` extension module in scipy's folder instead, without importing
+    it (numba's check of the LAPACK integer width still runs); numba's compiled BLAS
+    calls import it at their first call, as they always do. A no-op where numba differs
+    or once its target is loaded.
+    """
+    import os
+    import sys
+
+    if "numba.np.arraymath" in sys.modules or "scipy.linalg" in sys.modules:
+        return
+    try:
+        import scipy
+        from numba.core.registry import cpu_target
+        from numba.np import linalg as np_linalg
+    except ImportError:
+        return
+    original = getattr(np_linalg, "ensure_blas", None)
+    check_width = getattr(np_linalg, "_check_lapack_int_width", None)
+    target = getattr(cpu_target, "target_context", None)
+    if None in (original, check_width, getattr(target, "refresh", None)):
+        return
+
+    def ensure_blas():
+        import importlib.machinery
+
+        where = [os.path.join(d, "linalg") for d in scipy.__path__]
+        if importlib.machinery.PathFinder.find_spec("cython_blas", where) is None:
+            raise ImportError("scipy 0.16+ is required for linear algebra")  # as numba
+        check_width()
+
+    np_linalg.ensure_blas = ensure_blas
+    try:
+        target.refresh()
+    finally:
+        np_linalg.ensure_blas = original
+        arraymath = sys.modules.get("numba.np.arraymath")
+        if getattr(arraymath, "ensure_blas", None) is ensure_blas:
+            arraymath.ensure_blas = original
+
+
+def _light_numba_cache_loads():
+    """Until the returned ``restore()`` is called, numba loads its cached kernels without
+    first loading all of its compiler (the implementations of every Python and numpy
+    feature it compiles, and their typing: ~0.1 s CPU of the command's cold start, which
+    runs cached kernels only).
+
+    Before loading a cached kernel, numba refreshes its CPU target, i.e. loads those
+    registries; a cached kernel's machine code needs none of them, only numba's runtime
+    (NRT), which is initialised here instead. A kernel that is not in the cache is
+    compiled as always (numba's compiler loads the registries first), and a cached one
+    that fails to load this way is loaded again numba's way (after
+    :func:`_load_numba_target`). The kernels' machine code is the same either way. A
+    no-op where numba differs.
+    """
+    try:
+        from numba.core import caching
+        from numba.core.runtime import rtsys
+    except ImportError:
+        return lambda: None
+    cache = getattr(caching, "Cache", None)
+    original = getattr(cache, "load_overload", None)
+    if None in (original, getattr(cache, "_load_overload", None),
+                getattr(cache, "_guard_against_spurious_io_errors", None),
+                getattr(rtsys, "initialize", None)) or getattr(original, "_telefringe",
+                                                               False):
+        return lambda: None
+
+    def load_overload(self, sig, target_context):
+        try:
+            rtsys.initialize(target_context)
+            with self._guard_against_spurious_io_errors():
+                return self._load_overload(sig, target_context)
+        except Exception:  # noqa: BLE001 - loaded numba's way, which reports its errors
+            _load_numba_target()
+            return original(self, sig, target_context)
+
+    load_overload._telefringe = True
+    cache.load_overload = load_overload
+
+    def restore():
+        cache.load_overload = original
+
+    return restore
+
+
 def _read_ahead(*folders):
     """Begin reading the scan ``folders`` on a background thread; return
     ``read(folder) -> Scan``, which waits for that folder and raises its reading error.
@@ -255,6 +348,7 @@ def reconstruct_cmd(
     from telefringe.io.rig_json import load_rig
 
     read = _read_ahead(*((scan,) if second is None else (scan, second)))
+    restore = _light_numba_cache_loads()
     try:  # the errors as before: the rig's, the output folder's, then the scan's
         rig_obj = load_rig(rig)
         n_cams = len(getattr(getattr(rig_obj, "rig", rig_obj), "cameras", ()))
@@ -274,6 +368,7 @@ def reconstruct_cmd(
                                     **extra)
     finally:
         read.wait()  # no thread left reading, whatever happened
+        restore()  # numba's own cache loads again
     c = rec.cloud
     for name, ax in (getattr(rec.coords, "axes", None) or {}).items():
         fit = getattr(ax, "phase_errors", None)
@@ -305,6 +400,8 @@ def reconstruct_cmd(
 
 def _report_noise(choice) -> None:
     """One line on the camera noise model behind sigma (a warning for the default)."""
+    if state.quiet:  # (rich, for escape, not imported)
+        return
     from rich.markup import escape
 
     m = choice.model

@@ -367,7 +367,13 @@ _TAIL = 1e-4
 @lru_cache(maxsize=64)
 def _tail(nu: int) -> tuple[float, float]:
     """(c, F_{nu+2}(c)): the chi^2_nu quantile at 1 - _TAIL and the share of the mean of
-    chi^2_nu below it (scipy.special: cheaper to import than scipy.stats)."""
+    chi^2_nu below it (scipy.special: cheaper to import than scipy.stats; for nu <= 61
+    its figures from the table of :mod:`telefringe.fringes._chi2_tails`, without importing
+    it)."""
+    from telefringe.fringes._chi2_tails import TAIL, TAILS
+
+    if TAIL == _TAIL and 1 <= nu <= len(TAILS):
+        return TAILS[nu - 1]
     from scipy.special import gammainc, gammaincinv
 
     c = 2.0 * float(gammaincinv(nu / 2.0, 1.0 - _TAIL))
