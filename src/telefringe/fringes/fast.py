@@ -361,6 +361,7 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
         if t:
             tables[i], nf_tables[i] = _model_tables(models[i], m_tab)[:2]
     n_ser = max([len(s[0]) for s in series if s is not None] + [1])
+    n_ser = -(-n_ser // _k.SERIES_BLOCK) * _k.SERIES_BLOCK  # zero-padded (see the kernel)
     ser_a = np.zeros((n_lev, n_ser), dtype=np.float32)
     ser_b = np.zeros((n_lev, n_ser), dtype=np.float32)
     ser_c0 = np.zeros(n_lev, dtype=np.float32)
