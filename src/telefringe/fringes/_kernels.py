@@ -127,25 +127,27 @@ SERIES_BLOCK = 4
 def _clenshaw8(x2, k, b1, b2):
     """Eight steps of Clenshaw's recurrence b_t = k_t + x2 b_{t+1} - b_{t+2} (coefficients
     k[7], k[6], ..., k[0] in that order) from b_{t+1} = b1, b_{t+2} = b2; returns the last
-    two."""
-    b2 = (k[7] + x2 * b1) - b2
-    b1 = (k[6] + x2 * b2) - b1
-    b2 = (k[5] + x2 * b1) - b2
-    b1 = (k[4] + x2 * b2) - b1
-    b2 = (k[3] + x2 * b1) - b2
-    b1 = (k[2] + x2 * b2) - b1
-    b2 = (k[1] + x2 * b1) - b2
-    b1 = (k[0] + x2 * b2) - b1
+    two. Evaluated as x2 b_{t+1} + (k_t - b_{t+2}): the subtraction does not wait for
+    b_{t+1}, so each step adds one multiply-add's latency to the chain, not two
+    operations'."""
+    b2 = x2 * b1 + (k[7] - b2)
+    b1 = x2 * b2 + (k[6] - b1)
+    b2 = x2 * b1 + (k[5] - b2)
+    b1 = x2 * b2 + (k[4] - b1)
+    b2 = x2 * b1 + (k[3] - b2)
+    b1 = x2 * b2 + (k[2] - b1)
+    b2 = x2 * b1 + (k[1] - b2)
+    b1 = x2 * b2 + (k[0] - b1)
     return b1, b2
 
 
 @nb.njit(inline="always", error_model="numpy")
 def _clenshaw4(x2, k, b1, b2):
     """:func:`_clenshaw8` with four coefficients k[3], ..., k[0]."""
-    b2 = (k[3] + x2 * b1) - b2
-    b1 = (k[2] + x2 * b2) - b1
-    b2 = (k[1] + x2 * b1) - b2
-    b1 = (k[0] + x2 * b2) - b1
+    b2 = x2 * b1 + (k[3] - b2)
+    b1 = x2 * b2 + (k[2] - b1)
+    b2 = x2 * b1 + (k[1] - b2)
+    b1 = x2 * b2 + (k[0] - b1)
     return b1, b2
 
 
