@@ -173,10 +173,19 @@ def test_fused_decode_with_tables_matches_the_series(monkeypatch):
             <= 1.24e-6 * 800 / (2 * np.pi * 64))
 
 
+#: the one-period model learned for the paper rig (benchmarks/reconstruct.py, coefficients
+#: to 3 digits): its correction's series has 27 terms, the longest the rig's scans need
+_PAPER_RIG_MODEL = PhaseErrorModel(
+    1, (4, 8, 12, 16, 20, 24),
+    np.array([-2.57e-05, -3.04e-05, -7.98e-05, -4.85e-05, -3.42e-05, -5.06e-05]),
+    np.array([-0.0111, -0.000749, -0.000512, -0.000304, 0.000768, 0.000883]))
+
+
 @pytest.mark.parametrize("model", [
     PhaseErrorModel(64, (4, 8), np.array([0.0, 0.0]), np.array([-0.011, -0.001])),
     PhaseErrorModel(8, (3, 6, 9), np.array([0.05, -0.01, 0.003]),
-                    np.array([-0.12, 0.02, -0.004]))])
+                    np.array([-0.12, 0.02, -0.004])),
+    _PAPER_RIG_MODEL])
 def test_series_correction_matches_the_exact_inverse(model):
     from telefringe.fringes.fast import _model_tables
 
@@ -196,21 +205,23 @@ def test_series_correction_matches_the_exact_inverse(model):
 
 
 def _learned_models():
-    """The gamma models decode learns from a 4-step 1/8/64 scan at gamma 2.2, and a strong
-    3-step one."""
+    """The gamma models decode learns from a 4-step 1/8/64 scan at gamma 2.2, a strong
+    3-step one and the paper rig's one-period model."""
     x, stacks = _scan_stacks(gamma=2.2, rows=48, cols=160)
     fit = decode(_scan(stacks)).axes["u"].phase_errors
     return [m for m in fit.models if m.harmonics] + [
         PhaseErrorModel(8, (3, 6, 9), np.array([0.05, -0.01, 0.003]),
-                        np.array([-0.12, 0.02, -0.004]))]
+                        np.array([-0.12, 0.02, -0.004])), _PAPER_RIG_MODEL]
 
 
 def test_series_noise_factor_matches_the_exact_one():
     """The fused kernel's noise factor 1 - g'(measured phase), from the correction's series
     in float32, against the exact 1 / (1 + e'(true phase)) over the phase circle. It scales
     sigma (an uncertainty): a relative error of 1e-6 is far below what sigma is quoted to;
-    set-up check (float64) <= 5e-7; measured 0.9e-7 to 1.1e-7 for the learned models, 4.3e-7
-    for the strong 3-step one (slope up to 0.43): the bound is about 2x that."""
+    set-up check (float64) <= 5e-7; measured (Clenshaw's recurrence) 0.9e-7 to 1.1e-7 for
+    the learned models, 3.5e-7 for the strong 3-step one (slope up to 0.43), 5.2e-7 for the
+    paper rig's (27 terms, the derivative's coefficients up to 27 x 4 times the
+    correction's): the bound is about 2x the largest."""
     from telefringe.fringes.fast import _model_tables, _series_derivative
 
     models = _learned_models()

@@ -89,12 +89,14 @@ TABLE_NF_TOL = 5e-7
 TABLE_MIN_SIZE = 4096
 TABLE_MAX_SIZE = 2 ** 20
 #: a level's correction comes from the tables when its series has more terms than this,
-#: or has none, or (full decode) its noise factor is not exact. The series costs ~8
-#: float32 operations per term and pixel, vectorised; the tables two (four with the noise
-#: factor) scalar look-ups per pixel (LLVM does not gather on this machine's CPU), about
-#: the cost of a 20 to 30 term series: measured no faster in the full decode for the
-#: paper rig's learned models (27, 16 and 4 terms; benchmarks/reconstruct.py), so the tables
-#: serve only where the series cannot (48 = SERIES_MAX_TERMS: never by length)
+#: or has none, or (full decode) its noise factor is not exact. The series costs 4 float32
+#: operations per term and pixel (8 with the noise factor; Clenshaw's recurrence,
+#: vectorised, in registers); the tables two (four with the noise factor) scalar look-ups
+#: per pixel (LLVM does not gather on this machine's CPU): measured no faster in the full
+#: decode for the paper rig's learned models (27, 16 and 4 terms;
+#: benchmarks/reconstruct.py) even with the series' earlier complex powers (~8 operations
+#: per term), so the tables serve only where the series cannot (48 = SERIES_MAX_TERMS:
+#: never by length)
 TABLE_MIN_TERMS = 48
 
 
@@ -361,6 +363,7 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
         if t:
             tables[i], nf_tables[i] = _model_tables(models[i], m_tab)[:2]
     n_ser = max([len(s[0]) for s in series if s is not None] + [1])
+    n_ser = -(-n_ser // _k.SERIES_BLOCK) * _k.SERIES_BLOCK  # zero-padded (see the kernel)
     ser_a = np.zeros((n_lev, n_ser), dtype=np.float32)
     ser_b = np.zeros((n_lev, n_ser), dtype=np.float32)
     ser_c0 = np.zeros(n_lev, dtype=np.float32)
