@@ -13,21 +13,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_calibrate import (
-    CAM_PIX,
-    CAM_SIZE,
-    PROJ_PIX,
-    PROJ_SIZE,
-    grid_points,
-    observe,
-    paper_like_rig,
-    side_of,
-    target_poses,
-)
+from test_calibrate import synthetic_calibration
 
 import telefringe.simulate.render as sim
 from telefringe.batch import measure_many
-from telefringe.calibration.rig import calibrate_rig
 from telefringe.io.rig_json import bare_rig_json, load_rig, save_rig
 from telefringe.io.scan_json import read_scan, write_scan
 from telefringe.metrology import measure_sphere
@@ -46,14 +35,7 @@ def data(tmp_path_factory):
     scan, _ = sim.render_scan(vr, scenes.make_scene("sphere"), sim.default_groups(vr), seed=0)
     (root / "s0").mkdir()
     write_scan(root / "s0" / "scan", scan)
-    rng = np.random.default_rng(11)
-    rig0 = paper_like_rig()
-    P = grid_points(5, 6, pitch=5.0)
-    Rs, Ts = target_poses(6, rng, tilt_deg=15.0, centre=(12.5, 10.0, 0.0))
-    cam, proj = observe(rig0, P, Rs, Ts, rng)
-    cal = calibrate_rig(P, cam, proj, camera_pixel_size=CAM_PIX, projector_pixel_size=PROJ_PIX,
-                        camera_size=CAM_SIZE, projector_size=PROJ_SIZE,
-                        projector_side=side_of(rig0))
+    cal = synthetic_calibration(11)
     params = np.concatenate([vr.rig.camera.to_params(), vr.rig.projector.to_params()])
     save_rig(root / "rig.json", replace(cal, rig=vr.rig, parameters=params))
     (root / "bare.json").write_text(json.dumps(bare_rig_json(vr.rig)))

@@ -107,6 +107,21 @@ def side_of(rig: Rig) -> str:
     return min(sides, key=lambda s: float(a @ np.array(sides[s])))
 
 
+def synthetic_calibration(seed: int = 11, *, outlier_threshold=None):
+    """A RigCalibration of a paper-like rig from 6 synthetic poses of a 5 x 6 grid
+    (projected points plus noise, no rendering): a parameter covariance of the right kind
+    for tests that propagate one through another telecentric rig."""
+    rng = np.random.default_rng(seed)
+    rig0 = paper_like_rig()
+    P = grid_points(5, 6, pitch=5.0)
+    Rs, Ts = target_poses(6, rng, tilt_deg=15.0, centre=(12.5, 10.0, 0.0))
+    cam, proj = observe(rig0, P, Rs, Ts, rng)
+    kw = {} if outlier_threshold is None else {"outlier_threshold": outlier_threshold}
+    return calibrate_rig(P, cam, proj, camera_pixel_size=CAM_PIX, projector_pixel_size=PROJ_PIX,
+                         camera_size=CAM_SIZE, projector_size=PROJ_SIZE,
+                         projector_side=side_of(rig0), **kw)
+
+
 def rig_truth_vector(rig: Rig) -> np.ndarray:
     """True rig parameters in the order of RigCalibration.parameter_names (rotations:
     zeros), written out here rather than taken from the device's to_params."""

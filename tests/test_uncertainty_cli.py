@@ -10,20 +10,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_calibrate import (
-    CAM_PIX,
-    CAM_SIZE,
-    PROJ_PIX,
-    PROJ_SIZE,
-    grid_points,
-    observe,
-    paper_like_rig,
-    side_of,
-    target_poses,
-)
+from test_calibrate import synthetic_calibration
 
 import telefringe.simulate.render as sim
-from telefringe.calibration.rig import calibrate_rig
 from telefringe.cli import main
 from telefringe.cli.reconstruct import reconstruct_to_folder
 from telefringe.io.rig_json import save_rig
@@ -44,14 +33,7 @@ def bga_and_rig(tmp_path_factory):
     write_scan(tmp / "scan", scan)
     reconstruct_to_folder(tmp / "scan", vr.rig, tmp / "out")
     # a covariance of the right kind: a synthetic calibration of a paper-like rig
-    rng = np.random.default_rng(11)
-    rig0 = paper_like_rig()
-    P = grid_points(5, 6, pitch=5.0)
-    Rs, Ts = target_poses(6, rng, tilt_deg=15.0, centre=(12.5, 10.0, 0.0))
-    cam, proj = observe(rig0, P, Rs, Ts, rng)
-    cal = calibrate_rig(P, cam, proj, camera_pixel_size=CAM_PIX, projector_pixel_size=PROJ_PIX,
-                        camera_size=CAM_SIZE, projector_size=PROJ_SIZE,
-                        projector_side=side_of(rig0))
+    cal = synthetic_calibration(11)
     params = np.concatenate([vr.rig.camera.to_params(), vr.rig.projector.to_params()])
     save_rig(tmp / "rig.json", replace(cal, rig=vr.rig, parameters=params))
     wrong = crop_camera(paper, col0=col0, row0=row0, width=150, height=160)
