@@ -72,6 +72,14 @@ _MAX_CONTRACTION = 0.25
 #: moves it by ~2e-4 of the noise (tests/test_learn_gamma.py bounds it at 1e-3)
 _REMAINING = 0.02
 
+#: the last step (in standard errors of a coefficient) beyond which a fit that ran out of
+#: Gauss-Newton steps is reported as not converged: at the slowest contraction measured
+#: (0.8, after harmonics are dropped) the remaining distance is then up to 4x that, about
+#: the model's own uncertainty, which the decoded sigma does not hold; below it the model
+#: is a fraction of its uncertainty from the fixed point (0.06 standard errors move the
+#: decoded phase by ~6e-4 of its noise, see _REMAINING) and a warning would be noise
+_WARN_LAST_STEP = 0.25
+
 #: how a note of :attr:`PhaseErrorFit.warnings` saying that the fit did not converge
 #: ends (:func:`fit_phase_errors` also issues those notes as a RuntimeWarning)
 _NOT_CONVERGED = "(not converged)"
@@ -768,8 +776,9 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
     matrix, chi2) of the last evaluated iterate. Outliers are rejected from the first
     iteration on when ``reject_first`` (a good start), else from the second. With
     ``final`` (the pass whose iterate is the result), running out of the ``max_it - 1``
-    steps before a convergence test passes, or a step no halving keeps invertible, is
-    reported in ``notes`` as a line ending with :data:`_NOT_CONVERGED`.
+    steps with the last one above :data:`_WARN_LAST_STEP` standard errors, or a step no
+    halving keeps invertible, is reported in ``notes`` as a line ending with
+    :data:`_NOT_CONVERGED`.
 
     Errors in variables: the regressors are evaluated at the true-phase estimates, which
     carry the very noise that is in the residual. Least squares then learns the
@@ -886,7 +895,7 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
             atb[offs[a]:offs[a + 1]] -= s2 * stein[j, 0, :na]
             atb[offs[b]:offs[b + 1]] -= s2 * stein[j, 1, :nb_]
         if it == max_it - 1:
-            if final and notes is not None:
+            if final and notes is not None and last > _WARN_LAST_STEP:
                 notes.append(f"{_OUT_OF_STEPS} {max_it - 1} steps without meeting a "
                              f"convergence test (the last moved a coefficient by {last:.3g} "
                              f"of its standard errors, converged is <= {_REMAINING:g}); the "
