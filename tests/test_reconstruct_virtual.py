@@ -163,8 +163,12 @@ def paper_bga():
     vr_roi = replace(vr, name="paper-window",
                      rig=Rig(TelecentricDevice(roi, cam.R_dev_world, cam.t_dev),
                              vr.rig.projector))
-    scan, truth, cloud, coords = _run(vr_roi, bga, seed=3, exposures=HDR_EXPOSURES,
-                                      with_coords=True)
+    # a nonlinearity fit on this window (periods 1, 8, 48) does not converge (its Gauss-Newton
+    # steps cycle at ~78 standard errors of a coefficient, whatever the number of steps):
+    # the decode says so, and the measurement below is checked against the truth anyway
+    with pytest.warns(RuntimeWarning, match="without meeting a convergence test"):
+        scan, truth, cloud, coords = _run(vr_roi, bga, seed=3, exposures=HDR_EXPOSURES,
+                                          with_coords=True)
     nominal = BGANominal(rows=6, cols=6, pitch_mm=0.8, ball_diameter_mm=0.45)
     m = measure_bga(cloud, nominal, image=scan_radiance(scan))
     return truth.features, m
