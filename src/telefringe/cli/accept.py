@@ -144,7 +144,9 @@ def accept_cmd(
     bands of the test's expanded uncertainty. The cap of every sphere seen is reported (a
     single view sees a cap, which makes PS less certain). A rig with two cameras reads
     both cameras' scans of each position ("second" in acceptance.json) and matches them
-    as 'reconstruct --second' does. See docs/acceptance.md.
+    as 'reconstruct --second' does; U of PS and SD then holds the matches' correlated
+    noise (neighbouring matches share the second camera's pixels). See
+    docs/acceptance.md.
 
     Example: telefringe accept acc/acceptance --rig rig.json --artefacts acc/artefacts.json
 
