@@ -25,8 +25,8 @@ import numpy as np
 
 from telefringe.metrology._common import MetrologyError
 
-__all__ = ["LSSphere", "LSPlane", "PointNoise", "ls_sphere", "ls_plane", "n_excluded",
-           "point_noise", "trimmed"]
+__all__ = ["LSSphere", "LSPlane", "PointNoise", "correlated_covariance", "ls_sphere", "ls_plane",
+           "n_excluded", "point_noise", "trimmed"]
 
 
 @dataclass(frozen=True, eq=False)
