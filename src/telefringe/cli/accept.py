@@ -70,6 +70,23 @@ def _gamma_notes(rec) -> tuple[str, ...]:
     return tuple(dict.fromkeys(out))
 
 
+def _match_noise(rec, rig_obj, name: str, failed: list):
+    """A two-camera reconstruction's matches' noise split (StereoNoise, for the spheres'
+    fit uncertainty: neighbouring matches share the second camera's pixels), None for
+    one camera; None with ``name`` added to ``failed`` where it cannot be split."""
+    if getattr(rec, "match", None) is None or getattr(rec, "coords_2", None) is None:
+        return None
+    from telefringe.reconstruction.cloud import TriangulationError
+    from telefringe.reconstruction.stereo import match_noise
+
+    try:
+        return match_noise(rig_obj, rec.coords, rec.coords_2, rec.match)
+    except TriangulationError as exc:
+        failed.append(name)
+        detail(f"{name}: the matches' noise is not split ({exc})")
+        return None
+
+
 def _table(result):
     from rich.table import Table
 
@@ -127,7 +144,9 @@ def accept_cmd(
     bands of the test's expanded uncertainty. The cap of every sphere seen is reported (a
     single view sees a cap, which makes PS less certain). A rig with two cameras reads
     both cameras' scans of each position ("second" in acceptance.json) and matches them
-    as 'reconstruct --second' does. See docs/acceptance.md.
+    as 'reconstruct --second' does; U of PS and SD then holds the matches' correlated
+    noise (neighbouring matches share the second camera's pixels). See
+    docs/acceptance.md.
 
     Example: telefringe accept acc/acceptance --rig rig.json --artefacts acc/artefacts.json
 
@@ -169,6 +188,7 @@ def accept_cmd(
              "its characteristics are not tested")
     positions = []
     gamma_notes = {}
+    no_noise = []
     with progress_bar(f"measuring {len(scans)} positions", len(scans)) as advance:
         for entry in scans:
             name, kind, desc = entry.name, entry.artefact, entry.description
@@ -181,8 +201,11 @@ def accept_cmd(
                     rec = reconstruct_stereo_scans(scan, read_scan(Path(folder) / entry.second),
                                                    rig_obj, with_height_map=False,
                                                    gamma_correction=gamma)
+                noise = _match_noise(rec, rig_obj, name, no_noise)
                 pos = evaluate_position(name, kind, rec.cloud.xyz, rec.cloud.mask, cert,
-                                        erode_px=edge_px)
+                                        erode_px=edge_px, noise=noise,
+                                        directions=None if noise is None
+                                        else rec.cloud.directions)
             except (DecodeError, PhaseInputError, TriangulationError, MetrologyError) as exc:
                 raise InputError(f"{Path(folder) / entry.scan}: {exc}") from None
             notes = _gamma_notes(rec)
@@ -192,6 +215,10 @@ def accept_cmd(
             detail(f"{name} ({kind}{', ' + desc if desc else ''}): "
                    f"{rec.cloud.count} points")
             advance()
+    if no_noise:
+        info(f"[yellow]note:[/yellow] U of PS and SD at {', '.join(no_noise)} treats "
+             "neighbouring points as independent, which understates it for two cameras: "
+             "the matches' correlated noise could not be split there; -v says why")
     if gamma_notes:
         first = next(iter(gamma_notes.values()))[0]
         info(f"[yellow]warning:[/yellow] the projector nonlinearity learned from "

@@ -72,12 +72,6 @@ def _u_line(name: str, q, *, scale: float = 1000.0, unit: str = "um") -> str:
             f" U (k={q.k:g}) = {f(q.U)}")
 
 
-def _load(out: Path):
-    from telefringe.io.points_npz import read_points
-
-    return read_points(out)
-
-
 def _metrology_errors():
     from telefringe.metrology import MetrologyError
 
@@ -540,13 +534,14 @@ def steps_cmd(
 
     _check_outputs([json_path], force)
     cal = _load_calibration(rig)
-    cloud, _ = _load(out)
-    if _is_stereo(out):
-        info("[yellow]note:[/yellow] the levels' fit does not take the two-camera matches' "
-             "correlated noise: u of the heights comes from the residuals (white noise or "
-             "their spatial autocovariance, the larger)")
+    from telefringe.io.points_npz import load_points
+
+    pf = load_points(out)
+    cloud = pf.cloud
+    # two cameras: the matches' correlated noise (points.npz) in the levels' fit
+    noise = _expand(_stereo_noise(out, pf, "the heights"))
     try:
-        m = measure_steps(cloud, min_step=min_step)
+        m = measure_steps(cloud, min_step=min_step, noise=noise)
     except _metrology_errors() as exc:
         _fail(out, exc)
     m = _with_calibration(out, steps_uncertainty, m, cloud, cal)

@@ -20,8 +20,10 @@ class StepMeasurement:
     offsets : (k,) mm, ``normal . x = offset`` of each level, ascending.
     heights : (k,) mm, each level's height above the lowest (``offsets - offsets[0]``).
     sigma_heights : (k,) mm, standard uncertainty of ``heights`` from the residuals (0 for
-        the lowest): the larger of the white-noise figure and the one from the residuals'
-        spatial autocovariance (a phase ripple a level spans only a few periods of).
+        the lowest): the larger of the noise model's figure (independent points, or a
+        two-camera match's correlated noise when given, ``correlated``) and the one from
+        the residuals' spatial autocovariance (a phase ripple a level spans only a few
+        periods of).
     step_heights : (k - 1,) mm, height of each level above the one below.
     sigma_steps : (k - 1,) mm, the same for ``step_heights``.
     rms : (k,) mm, RMS residual of each level.   n_points : (k,) int.
@@ -29,6 +31,8 @@ class StepMeasurement:
     labels : (rows, cols) int, level of each pixel (-1: unused).
     edge_px : float, pixels: the margin kept from walls and other levels (see
         :func:`measure_steps`).
+    correlated : bool, the noise model's figure holds a two-camera match's correlated
+        noise (``measure_steps(..., noise=)``).
     uncertainty : dict of str -> Uncertainty, or None: ``"heights"``, ``"step_heights"``
         with the noise and calibration parts (set by
         :func:`telefringe.metrology.uncertainty.steps_uncertainty`; None until then).
@@ -46,6 +50,7 @@ class StepMeasurement:
     labels: np.ndarray
     uncertainty: dict | None = None
     edge_px: float = float("nan")
+    correlated: bool = False
 
     def __post_init__(self):
         _freeze(self, "normal", "offsets", "heights", "sigma_heights", "step_heights",
@@ -199,6 +204,44 @@ def _correlated_covariance(xyz, labels, n, offsets):
     return Mi @ B @ Mi
 
 
+def _noise_covariance(cloud: PointCloud, noise, labels, n, offsets):
+    """Covariance (2 + K, 2 + K) of the joint fit's (tilts, offsets) with the points'
+    correlated noise (a two-camera match's ``StereoNoise``), scaled by the residuals.
+
+    A point moved by ``delta_s`` along its line ``d`` moves its residual ``n . p - d_k``
+    by ``(n . d) delta_s``; the fit is linear in (tilts, offsets) about ``n`` (design
+    ``[T p, -1 of its level]``, :func:`_parallel_planes_normal_equations`), so the
+    parameters' covariance is the sandwich of the points' exact covariance from the
+    noise split (:func:`telefringe.metrology.spheres._sandwich`: ``k M^-1 A' C A M^-1``,
+    ``k = r' r / tr((I - H) C)``), which with independent points of equal sigma is the
+    usual ``s^2 M^-1``. The tangent coordinates are centred on the kept points (the
+    offsets' differences, the heights, do not depend on where they are taken).
+    ``labels`` (rows, cols) int, -1 unused."""
+    from telefringe.metrology.spheres import _sandwich
+
+    if np.shape(noise.var_own) != cloud.shape:
+        raise MetrologyError(f"noise has shape {np.shape(noise.var_own)}, the cloud "
+                             f"{cloud.shape}")
+    sel = labels >= 0
+    var_own = np.asarray(noise.var_own, dtype=np.float64)[sel]
+    if not np.all(np.isfinite(var_own)):
+        raise MetrologyError("noise does not cover every fitted point (NaN var_own): not "
+                             "the cloud's match")
+    p = cloud.xyz[sel]
+    lev = labels[sel]
+    K = offsets.size
+    T = _tangent_basis(n)
+    q = p @ T.T
+    q -= q.mean(axis=0)
+    J = np.column_stack([q, -(lev[:, None] == np.arange(K)[None, :]).astype(np.float64)])
+    f = p @ n - offsets[lev]
+    dirs = np.asarray(cloud.directions, dtype=np.float64)
+    d = np.broadcast_to(dirs, p.shape) if dirs.ndim == 1 else dirs[sel]
+    Ninv = np.linalg.inv(J.T @ J)
+    return _sandwich(J, d @ n, Ninv, f, var_own, np.asarray(noise.weights)[sel],
+                     np.asarray(noise.sources)[sel])
+
+
 def _dominant_normal(cloud: PointCloud) -> np.ndarray:
     """Median of the normals of the cloud's pixel quads: the orientation shared by most
     of the surface (the levels of a step gauge; a plane fit would tilt along the
@@ -301,7 +344,7 @@ def _structure(nearest, in_band, mask):
 
 def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int = 200,
                   psf_px: float = 0.5, edge_px: float | None = None,
-                  k_band: float = 4.0) -> StepMeasurement:
+                  k_band: float = 4.0, noise=None) -> StepMeasurement:
     """Heights of the flat levels of a step gauge (parallel planes fitted jointly).
 
     The median normal of the surface gives a first orientation; heights along it are
@@ -319,9 +362,11 @@ def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int 
 
     ``sigma_heights`` and ``sigma_steps`` come from the residuals: the fit's covariance
     with their spatial autocovariance (:func:`_correlated_covariance`), never less than
-    with uncorrelated residuals. A phase ripple is correlated over its period, and a level
-    a few periods wide does not average it away: an uncorrected projector nonlinearity's
-    ripple repeats every fringe period, and an 8-bit projector's quantisation ripple every
+    the noise model's (uncorrelated residuals, or with ``noise`` the two-camera match's
+    correlated noise, :func:`_noise_covariance`; both scaled by the residuals). A phase
+    ripple is correlated over its period, and a level a few periods wide does not average
+    it away: an uncorrected projector nonlinearity's ripple repeats every fringe period,
+    and an 8-bit projector's quantisation ripple every
     ``W / gcd(W, p)`` projector pixels (W the panel's pixels along the fringe axis, p the
     finest group's periods: 25 pixels, 4 fringe periods, with 64 periods on 400). Its
     bias on a level is fixed for a given placement of the gauge; the figure is its spread
@@ -332,16 +377,33 @@ def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int 
     wall, times the largest height difference of the levels) is at most a tenth of its
     noise (:func:`edge_margin_px`); 0.5 px is a focused camera.
 
+    A cloud matched by two cameras has correlated noise: neighbouring matches interpolate
+    the same pixels of the second camera, so the independent points' figure understates
+    the levels' errors. Its noise split (``noise``) gives the noise model's figure the
+    sandwich of the points' exact covariance. The autocovariance figure sees that
+    correlation too (it is short-range), but estimated from the residuals alone it
+    scatters (0.4-1.2 times the white figure on white noise): the noise model is the
+    reliable floor, the autocovariance what a ripple adds beyond it; the larger of the two
+    is taken (tests/test_stereo_noise_steps.py).
+
     Parameters
     ----------
     cloud : PointCloud, any camera (per-pixel viewing directions are used).
     min_step : float, mm, the smallest step to find.
     min_points : int, fewest points of a level.
     psf_px, edge_px, k_band : see above.
+    noise : StereoNoise, optional, a cloud matched by two cameras: the matches' noise
+        split (:func:`telefringe.reconstruction.stereo.match_noise`, on the cloud's grid).
+        The levels found and fitted are the same.
 
     Returns
     -------
-    StepMeasurement (``edge_px`` the margin used).
+    StepMeasurement (``edge_px`` the margin used; ``correlated`` with ``noise``).
+
+    Raises
+    ------
+    MetrologyError
+        No step found; ``noise`` of another shape or not covering a fitted point.
     """
     from scipy import ndimage
 
@@ -439,6 +501,10 @@ def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int 
     if merged:
         raise MetrologyError("the levels did not settle (their starts kept merging)")
     cov_c = _correlated_covariance(xyz, labels, n, offsets)
+    if noise is not None:
+        # the noise model's figure with the matches' correlation, in place of the
+        # independent points' (the same fit, the same residuals)
+        cov = _noise_covariance(cloud, noise, labels, n, offsets)
     order = np.argsort(offsets)
     offsets = offsets[order]
     K = len(offsets)
@@ -452,7 +518,8 @@ def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int 
     def var_diff(c, a, b):
         return max(c[a, a] + c[b, b] - 2 * c[a, b], 0.0)
 
-    # the larger of the white-noise and the correlated-residual figures
+    # the larger of the noise model's (white, or the stereo noise) and the
+    # correlated-residual figures
     sig_h = np.sqrt([max(var_diff(cov_d, k, 0), var_diff(cov_dc, k, 0)) for k in range(K)])
     steps = np.diff(offsets)
     sig_s = np.sqrt([max(var_diff(cov_d, k + 1, k), var_diff(cov_dc, k + 1, k))
@@ -461,4 +528,4 @@ def measure_steps(cloud: PointCloud, *, min_step: float = 0.05, min_points: int 
     npts = np.array([pts_list[k].shape[0] for k in order], dtype=np.int64)
     cents = np.array([pts_list[k].mean(axis=0) for k in order])
     return StepMeasurement(n, offsets, heights, sig_h, steps, sig_s, rms, npts, cents, labels,
-                           edge_px=float(margin))
+                           edge_px=float(margin), correlated=noise is not None)

@@ -9,6 +9,7 @@ import numpy as np
 
 from telefringe.metrology._common import MetrologyError, _components
 from telefringe.metrology.acceptance.decision import DECISION_RULE, combine, decide
+from telefringe.metrology.acceptance.fits import point_noise
 from telefringe.metrology.acceptance.quantities import (
     EXCLUDED_FRACTION,
     FlatnessTest,
@@ -201,7 +202,8 @@ def artefact_regions(mask, count: int, *, erode_px: int = EDGE_PX, min_pixels: i
 
 
 def evaluate_position(name: str, kind: str, xyz, mask, artefacts: Artefacts, *,
-                      exclude: float = EXCLUDED_FRACTION, erode_px: int = EDGE_PX) -> Position:
+                      exclude: float = EXCLUDED_FRACTION, erode_px: int = EDGE_PX,
+                      noise=None, directions=None) -> Position:
     """The characteristics of one scan.
 
     Parameters
@@ -214,6 +216,12 @@ def evaluate_position(name: str, kind: str, xyz, mask, artefacts: Artefacts, *,
     erode_px : pixels taken off each region's border: there the camera's blur mixes the
         artefact with what lies behind it (on the virtual rigs a 1-pixel border left
         outliers of 100 um in F and a PS bias of +37 um, 2 pixels none; docs/acceptance.md).
+    noise : StereoNoise, optional, a two-camera scan's: the matches' noise split
+        (:func:`telefringe.reconstruction.stereo.match_noise`, on the grid of ``xyz``),
+        with ``directions`` ((3,) or (rows, cols, 3), the cloud's viewing directions).
+        Neighbouring matches share the second camera's pixels; with it the spheres' fit
+        uncertainty (PS, SD) holds that correlation, without it the points count as
+        independent (which understates it). PF and F, ranges, are the same either way.
 
     Returns
     -------
@@ -223,14 +231,25 @@ def evaluate_position(name: str, kind: str, xyz, mask, artefacts: Artefacts, *,
     mask = np.asarray(mask, dtype=bool) & np.all(np.isfinite(xyz), axis=-1)
     if kind not in ARTEFACT_KINDS:
         raise MetrologyError(f"unknown artefact {kind!r} (known: {', '.join(ARTEFACT_KINDS)})")
+    if (noise is None) != (directions is None):
+        raise MetrologyError("noise and directions go together (the points' noise moves "
+                             "them along their viewing directions)")
     regions = artefact_regions(mask, 2 if kind == "ball_bar" else 1, erode_px=erode_px)
     pixels = [np.argwhere(r) for r in regions]
     pts = [xyz[px[:, 0], px[:, 1]] for px in pixels]
+    nz = [None] * len(pixels)
+    if noise is not None and kind != "plane":
+        if np.shape(noise.var_own) != mask.shape:
+            raise MetrologyError(f"noise has shape {np.shape(noise.var_own)}, the scan "
+                                 f"{mask.shape}")
+        nz = [point_noise(noise, directions, px) for px in pixels]
     if kind == "sphere":
-        test = probing_errors(pts[0], artefacts.sphere_diameter, exclude=exclude)
+        test = probing_errors(pts[0], artefacts.sphere_diameter, exclude=exclude,
+                              noise=nz[0])
     elif kind == "ball_bar":
         test = sphere_spacing_error(pts[0], pts[1], artefacts.bar_distance,
-                                    artefacts.bar_diameters, exclude=exclude)
+                                    artefacts.bar_diameters, exclude=exclude,
+                                    noise=None if nz[0] is None else tuple(nz))
     else:
         test = flatness_error(pts[0], exclude=exclude)
     return Position(name=name, kind=kind, test=test, pixels=pixels, shape=mask.shape)

@@ -9,7 +9,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from telefringe.metrology._common import MetrologyError
-from telefringe.metrology.acceptance.fits import LSPlane, LSSphere, ls_plane, ls_sphere, trimmed
+from telefringe.metrology.acceptance.fits import (
+    LSPlane,
+    LSSphere,
+    PointNoise,
+    ls_plane,
+    ls_sphere,
+    trimmed,
+)
 
 __all__ = ["EXCLUDED_FRACTION", "SphereTest", "SpacingTest", "FlatnessTest", "cap_half_angle",
            "probing_errors", "sphere_spacing_error", "flatness_error"]
@@ -49,7 +56,8 @@ class SphereTest:
     n_points, n_excluded : int.
     cap_half_angle_deg : float, the cap the kept points cover (:func:`cap_half_angle`).
     u_fit_diameter : float, mm, standard uncertainty of the fitted diameter from the
-        residuals' scatter (a repeatability).
+        residuals' scatter (a repeatability; with the points' correlated noise when the
+        fit was given it, ``fit.correlated``).
     """
 
     PF: float
@@ -106,7 +114,8 @@ class FlatnessTest:
 
 
 def probing_errors(points, calibrated_diameter: float, *,
-                   exclude: float = EXCLUDED_FRACTION) -> SphereTest:
+                   exclude: float = EXCLUDED_FRACTION,
+                   noise: PointNoise | None = None) -> SphereTest:
     """PF and PS of the test sphere at one position.
 
     Fits a least-squares sphere with free radius to all points, excludes the
@@ -119,6 +128,9 @@ def probing_errors(points, calibrated_diameter: float, *,
     points : (n, 3) mm, the points on the sphere (n >= 4, not coplanar).
     calibrated_diameter : float, mm.
     exclude : float, the share of points that may be excluded (default 0.3 %).
+    noise : PointNoise of the n points, optional (a two-camera match's correlated noise):
+        ``u_fit_diameter`` then holds it (:func:`~telefringe.metrology.acceptance.fits.
+        ls_sphere`); the values are the same.
 
     Returns
     -------
@@ -127,7 +139,7 @@ def probing_errors(points, calibrated_diameter: float, *,
     p = np.asarray(points, dtype=np.float64)
     if not (np.isfinite(calibrated_diameter) and calibrated_diameter > 0):
         raise MetrologyError(f"the calibrated diameter must be > 0, got {calibrated_diameter}")
-    fit, kept = trimmed(p, ls_sphere, exclude)
+    fit, kept = trimmed(p, ls_sphere, exclude, noise=noise)
     r = fit.residuals
     return SphereTest(PF=float(r.max() - r.min()), PS=float(fit.diameter - calibrated_diameter),
                       fit=fit, kept=kept, n_points=int(p.shape[0]),
@@ -138,7 +150,8 @@ def probing_errors(points, calibrated_diameter: float, *,
 
 def sphere_spacing_error(points_a, points_b, calibrated_distance: float,
                          calibrated_diameters=(None, None), *,
-                         exclude: float = EXCLUDED_FRACTION) -> SpacingTest:
+                         exclude: float = EXCLUDED_FRACTION,
+                         noise: tuple | None = None) -> SpacingTest:
     """SD of the ball bar at one position: the distance of the centres of the two
     spheres' least-squares fits (free radius, the same exclusion as PF) minus
     ``calibrated_distance``.
@@ -149,6 +162,9 @@ def sphere_spacing_error(points_a, points_b, calibrated_distance: float,
     calibrated_distance : float, mm.
     calibrated_diameters : two floats or None, mm, for the spheres' own PS (reported
         only); None uses the fitted diameter (PS = 0).
+    noise : (PointNoise, PointNoise) of the two point sets, optional (a two-camera
+        match's correlated noise): ``u_fit_distance`` then holds it, the covariance of
+        the two centres through the noise sources they share included.
 
     Returns
     -------
@@ -156,18 +172,28 @@ def sphere_spacing_error(points_a, points_b, calibrated_distance: float,
     """
     if not (np.isfinite(calibrated_distance) and calibrated_distance > 0):
         raise MetrologyError(f"the calibrated distance must be > 0, got {calibrated_distance}")
+    noise = (None, None) if noise is None else tuple(noise)
+    if len(noise) != 2:
+        raise MetrologyError("noise must be one PointNoise per sphere (two)")
     tests = []
-    for pts, d in zip((points_a, points_b), calibrated_diameters, strict=True):
+    for pts, d, nz in zip((points_a, points_b), calibrated_diameters, noise, strict=True):
         if d is None:
             d = ls_sphere(pts).diameter
-        tests.append(probing_errors(pts, float(d), exclude=exclude))
+        tests.append(probing_errors(pts, float(d), exclude=exclude, noise=nz))
     a, b = tests
     delta = b.fit.centre - a.fit.centre
     dist = float(np.linalg.norm(delta))
     g = delta / dist
     var = float(g @ a.fit.covariance[:3, :3] @ g + g @ b.fit.covariance[:3, :3] @ g)
+    if a.fit.correlated and b.fit.correlated:
+        # the two centres' covariance through the sources both fits see (none when the
+        # spheres' matches read different pixels of the second camera)
+        _, ia, ib = np.intersect1d(a.fit.sources, b.fit.sources, assume_unique=True,
+                                   return_indices=True)
+        cross = a.fit.source_gain[:3, ia] @ b.fit.source_gain[:3, ib].T
+        var -= 2.0 * float(g @ cross @ g)
     return SpacingTest(SD=dist - float(calibrated_distance), distance=dist,
-                       spheres=(a, b), u_fit_distance=float(np.sqrt(var)))
+                       spheres=(a, b), u_fit_distance=float(np.sqrt(max(var, 0.0))))
 
 
 def flatness_error(points, *, exclude: float = EXCLUDED_FRACTION) -> FlatnessTest:
