@@ -17,7 +17,10 @@ package) and triangulates the same coordinates with both, on:
 Every field of every cloud must be equal (``np.array_equal``, NaNs equal; the same dtype
 and shape). Then prints the CPU time on one thread (minimum of ``--runs``) and the wall
 time on all threads (minimum) of both, interleaved run by run (the machine may be
-shared). Exits with status 1 when a cloud differs.
+shared), and what bounds the telecentric u-only kernel: its CPU time on one thread over
+the full frame against the same work on a 4096-pixel slice solved again and again (its
+inputs and outputs in the core's L2 cache: the arithmetic alone). Exits with status 1
+when a cloud differs.
 """
 
 from __future__ import annotations
@@ -150,25 +153,74 @@ def _cases_paper(rig, shape, scan):
 
 
 def _time(fns, runs):
-    """CPU time on one thread (min) and wall on all threads (min), interleaved."""
+    """CPU time on one thread (min) and wall on all threads (min), interleaved.
+
+    The one-thread runs come first, after a pause: the worker threads of a parallel
+    region spin for a while after it (OpenMP's wait policy), and that CPU time would
+    count in the next run's process time."""
     import numba
 
     n_thr = numba.get_num_threads()
     cpu = {k: [] for k in fns}
     wall = {k: [] for k in fns}
-    for _ in range(runs):
-        for k, f in fns.items():
-            numba.set_num_threads(1)
-            try:
+    numba.set_num_threads(1)
+    try:
+        time.sleep(0.5)
+        for _ in range(runs):
+            for k, f in fns.items():
                 t0 = time.process_time()
                 f()
                 cpu[k].append(time.process_time() - t0)
-            finally:
-                numba.set_num_threads(n_thr)
+    finally:
+        numba.set_num_threads(n_thr)
+    for _ in range(runs):
+        for k, f in fns.items():
             t0 = time.perf_counter()
             f()
             wall[k].append(time.perf_counter() - t0)
     return {k: (min(cpu[k]), min(wall[k])) for k in fns}, n_thr
+
+
+def _kernel_bound(rig, shape, runs):
+    """CPU time (1 thread, min of runs) of the u-only kernel on the full frame and of the
+    same number of pixels solved on a 4096-pixel slice (in cache), interleaved."""
+    import numba
+
+    from telefringe.reconstruction import telecentric
+
+    up, _, su, _, mask = _paper_coords(rig, shape)
+    seen = {}
+    kernel = telecentric._solve_u_fast
+
+    def spy(*a):
+        seen["args"] = a
+        return kernel(*a)
+
+    telecentric._solve_u_fast = spy
+    try:
+        telecentric.triangulate(rig, Coords(up, None, mask, su))
+    finally:
+        telecentric._solve_u_fast = kernel
+    full = seen["args"]
+    block = telecentric._solve_u_block
+
+    @numba.njit(nogil=True)
+    def again(reps, *a):
+        n = 0
+        for _ in range(reps):
+            n += block(*a)
+        return n
+
+    m, lo = 4096, full[0].shape[0] // 2
+    small = tuple(x[lo:lo + m].copy() if isinstance(x, np.ndarray) and x.shape[0] > m
+                  else x for x in full)
+    n = full[0].shape[0]
+    reps = n // m
+    t, _ = _time({"full": lambda: block(*full), "in cache": lambda: again(reps, *small)},
+                 runs)
+    print(f"  telecentric u-only kernel, CPU 1 thread: full frame {t['full'][0] * 1e3:.2f} ms;"
+          f" the same pixel count on a {m}-pixel slice in cache (arithmetic alone) "
+          f"{t['in cache'][0] * 1e3 * n / (m * reps):.2f} ms")
 
 
 def main(argv=None) -> int:
@@ -233,6 +285,7 @@ def main(argv=None) -> int:
                   f"{t['new'][0] * 1e3:6.2f} ms; wall {n_thr} threads: {args.ref} "
                   f"{t['old'][1] * 1e3:6.2f} ms, new {t['new'][1] * 1e3:6.2f} ms "
                   f"({mpx / t['new'][1]:.0f} Mpx/s)")
+        _kernel_bound(rig, shape, args.runs)
         print(f"  (load average {os.getloadavg()[0]:.2f})")
     tmp.cleanup()
     return 1 if bad else 0
