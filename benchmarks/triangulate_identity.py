@@ -262,7 +262,8 @@ def main(argv=None) -> int:
         mask[50:90, 100:400] = False
         for label, c in (("u only", Coords(up, None, mask, sig)),
                          ("u + v", Coords(up, vp, mask, sig, 1.2 * sig)),
-                         ("u + v, no sigmas", Coords(up, vp))):
+                         ("u + v, no sigmas", Coords(up, vp)),
+                         ("v only", Coords(None, vp, mask, None, sig))):
             new = generic.triangulate(grig, c)
             old = old_gen.triangulate(grig, c)
             diff = _same(new, old)
