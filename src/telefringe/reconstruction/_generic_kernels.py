@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from telefringe import _recycle
 from telefringe.devices import _pinhole_kernels as _pk
 from telefringe.devices import _telecentric_kernels as _tk
 from telefringe.reconstruction.cloud import (
@@ -106,8 +107,8 @@ def _run(proj, O, D, a_obs, b_obs, sa, sb, mask, combine, swap, W, H, max_res,
     if b_obs is None:
         b_obs = a_obs
         sb = sa
-    if res is None:
-        res = np.empty(n)
+    if res is None:  # scratch: the solver writes a residual for every pixel
+        res = _recycle.empty(n)
     _solve_pinhole(O, D, a_obs, b_obs, sa, sb, mask, has_b, combine, swap, intr, R, t,
                    float(W), float(H), float(max_res), float(max_sz), xyz, sig, res, flags, ok)
 

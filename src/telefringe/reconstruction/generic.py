@@ -50,6 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from telefringe import _recycle
 from telefringe.devices.rig import Rig
 from telefringe.geometry.distortion import ConvergenceError
 from telefringe.reconstruction import _generic_kernels as _gk
@@ -287,11 +288,12 @@ class GenericTriangulator:
         W, H = (float(size[0]), float(size[1])) if size is not None else (np.inf, np.inf)
         solver = _gk.solver_for(proj) if compiled and self.planes is not None else None
         out = _Out(n, empty=solver is not None)
-        if obs.has_v:
-            out.res = np.full(n, np.nan)
         if solver is not None:
             self._check_sample(obs, use_v_p)
-            xyz = np.empty((3, n))
+            # recycled memory: the compiled solvers write every element
+            xyz = _recycle.empty((3, n))
+            if obs.has_v:
+                out.res = _recycle.empty(n)
             solver(proj, self.planes[0], self.planes[1], obs.a, obs.b, obs.sa, obs.sb,
                    obs.mask, obs.has_v and use_v_p, obs.swap, W, H,
                    np.inf if max_residual is None else max_residual,
@@ -299,6 +301,8 @@ class GenericTriangulator:
                    out.res, out.flags, out.ok)
             out.xyz = np.moveaxis(xyz.reshape((3,) + self.shape), 0, -1)
             return self._cloud(out)
+        if obs.has_v:
+            out.res = np.full(n, np.nan)
         o_full = np.broadcast_to(self.origin, (n, 3))
         d_full = np.broadcast_to(self.direction, (n, 3))
         for lo in range(0, n, _CHUNK):
@@ -343,11 +347,11 @@ class _Out:
     """The flat outputs; ``empty``: the compiled solvers write every element."""
 
     def __init__(self, n, empty=False):
-        if empty:
+        if empty:  # recycled memory (telefringe._recycle)
             self.xyz = None
-            self.sig = np.empty(n)
-            self.flags = np.empty(n, dtype=np.uint8)
-            self.ok = np.empty(n, dtype=bool)
+            self.sig = _recycle.empty(n)
+            self.flags = _recycle.empty(n, dtype=np.uint8)
+            self.ok = _recycle.empty(n, dtype=bool)
         else:
             self.xyz = np.full((n, 3), np.nan)
             self.sig = np.full(n, np.nan)
@@ -378,10 +382,17 @@ def _observations(coords, shape) -> _Obs:
     n = int(np.prod(shape))
 
     def flat(x):
-        return np.full(n, np.nan) if x is None else np.asarray(x, np.float64).reshape(n)
+        if x is None:  # no uncertainty given: NaN (recycled memory, filled)
+            nan = _recycle.empty(n)
+            nan.fill(np.nan)
+            return nan
+        return np.asarray(x, np.float64).reshape(n)
 
     m = np.ones(n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool).reshape(n)
-    return _Obs(flat(up), None if vp is None else flat(vp), flat(su), flat(sv), m, swap)
+    sa = flat(su)
+    # without a second axis its uncertainty is never used: no plane of NaN for it
+    sb = sa if vp is None and sv is None else flat(sv)
+    return _Obs(flat(up), None if vp is None else flat(vp), sa, sb, m, swap)
 
 
 def _check_sensitivity(ratio, obs: _Obs, use_v_p: bool):
