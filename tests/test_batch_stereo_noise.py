@@ -4,8 +4,13 @@ and the row's figures carry the matches' correlated noise (neighbouring matches 
 second camera's pixels): the same u as ``telefringe measure steps`` reports on the
 one-scan reconstruction, larger than the independent points' figure.
 
+The sphere with a calibrated two-camera rig.json: the row equals ``telefringe measure
+sphere --rig`` (the fit through both cameras' point-spread model with the matches' noise,
+the calibration's part through both cameras).
+
 In this process (``workers=0``), on the stereo preset binned 8 x 8 (as
-test_stereo_noise_steps.py), a bare rig.json (the u hold the noise alone)."""
+test_stereo_noise_steps.py and test_stereo_noise_cli.py, whose calibrated stereo folder
+is reused)."""
 
 from __future__ import annotations
 
@@ -13,8 +18,10 @@ import json
 
 import numpy as np
 import pytest
+from test_stereo_noise_cli import stereo_folder  # noqa: F401 - the fixture
 
 from telefringe.batch import measure_many
+from telefringe.batch.job import flatten_summary
 from telefringe.io.errors import InputError
 
 OPTS = {"measure": "steps", "gamma_correction": False}
@@ -107,3 +114,49 @@ def test_second_needs_two_cameras(stereo_steps, tmp_path):
     with pytest.raises(InputError, match="relative"):
         measure_many([str(stereo_steps / "s0" / "camera")], stereo_steps / "rig.json",
                      workers=0, second=str(stereo_steps / "s0" / "camera_2"), **OPTS)
+
+
+def test_batch_sphere_row_equals_measure_sphere_rig_on_two_cameras(stereo_folder):  # noqa: F811
+    """A calibrated two-camera rig.json: every figure of the batch's sphere row equals
+    `measure sphere --rig` on the one-scan stereo reconstruction (to 1e-9): the sphere
+    fitted through both cameras' point-spread model with the matches' correlated noise,
+    u_noise larger than the same command's on points.npz without the stereo keys (the
+    independent points' figure); the calibration's part through both cameras."""
+    from telefringe.cli import main
+
+    tmp, vrig, scans, cal = stereo_folder
+    names = vrig.rig.camera_names
+    frame = measure_many([str(tmp / names[0])], tmp / "rig.json", measure="sphere",
+                         workers=0, second=f"../{names[1]}")
+    row = frame.iloc[0]
+    assert row["status"] == "ok", row["error"]
+    assert row["warnings"] == ""
+    js = tmp / "batch_one.json"
+    assert main(["measure", "sphere", str(tmp / "out"), "--rig", str(tmp / "rig.json"),
+                 "--json", str(js), "--force"]) == 0
+    want = flatten_summary(json.loads(js.read_text()), "sphere")
+    assert want["sphere.point_spread.variance_2_px2"] is not None  # two cameras' model
+    assert want["sphere.uncertainty.radius.u_calibration"] > 0
+    for key, v in want.items():
+        if key == "sphere.base_plane.tilt_deg":
+            # an arccos near 0 (tilt ~3e-6 rad): a rounding of the normal's z (eps) moves
+            # it by eps / tilt; 4 eps of it (measured 0.5 eps)
+            atol = np.degrees(4 * np.finfo(float).eps / np.radians(v))
+            np.testing.assert_allclose(row[key], v, rtol=0, atol=atol, err_msg=key)
+        elif isinstance(v, float):
+            np.testing.assert_allclose(row[key], v, rtol=1e-9, err_msg=key)
+        else:
+            assert row[key] == v, key
+    # the independent points' figure: the folder without the stereo keys
+    with np.load(tmp / "out" / "points.npz") as z:
+        arrays = {k: z[k] for k in z.files if not k.startswith("stereo_")}
+    old = tmp / "batch_old"
+    old.mkdir(exist_ok=True)
+    np.savez(old / "points.npz", **arrays)
+    (old / "summary.json").write_text((tmp / "out" / "summary.json").read_text())
+    assert main(["measure", "sphere", str(old), "--rig", str(tmp / "rig.json"), "--json",
+                 str(js), "--force"]) == 0
+    ind = json.loads(js.read_text())["uncertainty"]["radius"]["u_noise"]
+    print("radius u_noise um: batch", row["sphere.uncertainty.radius.u_noise"] * 1e3,
+          "independent", ind * 1e3)
+    assert row["sphere.uncertainty.radius.u_noise"] > 1.05 * ind

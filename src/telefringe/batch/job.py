@@ -22,7 +22,7 @@ MEASURES = ("none", "bga", "plate", "sphere", "steps")
 #: in each scan's output folder: its row of the table, with the key of its inputs
 ROW_FILE = "row.json"
 #: bumped when the outputs of a scan change meaning (old outputs are then redone)
-OUTPUT_VERSION = 1
+OUTPUT_VERSION = 2
 
 #: the columns every row has, in order (the measurement's own follow, named
 #: ``<measure>.<field>``); their types are in :data:`telefringe.batch.table.FIXED_TYPES`
@@ -176,15 +176,19 @@ def _numba_threads(n: int | None):
 
 
 # ----------------------------------------------------------------------------- measure
-def _measure(rec, options: BatchOptions, rig=None, noise=None):
-    """(measurement, summary dict) of a reconstruction; (None, {}) for 'none'. ``rig``
-    (the rig that made it): its camera corrects the plate's detected marker centres; a
+def _measure(rec, options: BatchOptions, rig=None, noise=None, scan=None, scan_2=None):
+    """(measurement, summary dict) of a reconstruction; (None, {}) for 'none', as
+    ``telefringe measure <kind> [--rig]`` gives them for its folder. ``rig`` (the rig
+    that made it): its camera corrects the plate's detected marker centres; a
     RigCalibration with a parameter covariance (a calibrated rig.json) adds the
-    calibration's part to each figure's uncertainty, as ``telefringe measure --rig``
-    does. ``noise``: a two-camera match's StereoNoise (the plate's and the steps' fits
-    take it, as ``telefringe measure`` does with points.npz's), or None."""
-    measurement, summary = _measure_only(rec, options, rig, noise)
+    calibration's part to each figure's uncertainty (a two-camera cloud's through both
+    cameras, :func:`~telefringe.metrology.uncertainty.for_stereo_scan`) and fits the
+    sphere through the cameras' point-spread model. ``noise``: a two-camera match's
+    StereoNoise, which the plate's, the steps' and (through the point-spread model)
+    the sphere's fits take; ``scan``, ``scan_2``: the cameras' scans (the sphere's
+    point-spread model)."""
     cal = _calibration_of(rig)
+    measurement, summary = _measure_only(rec, options, rig, noise, cal, scan, scan_2)
     if measurement is None or cal is None:
         return measurement, summary
     from telefringe.io import reports
@@ -192,11 +196,14 @@ def _measure(rec, options: BatchOptions, rig=None, noise=None):
 
     fn = {"plate": mu.plate_uncertainty, "sphere": mu.sphere_uncertainty,
           "steps": mu.steps_uncertainty, "bga": mu.bga_uncertainty}[options.measure]
+    if options.measure == "sphere" and scan_2 is not None:
+        cal = mu.for_stereo_scan(cal, scan_2)  # as 'measure sphere --rig' (two cameras)
     measurement = fn(measurement, rec.cloud, cal)
     if options.measure == "sphere":
         summary = reports.sphere_summary(measurement.sphere, measurement.base,
                                          region=measurement.region,
-                                         uncertainty=measurement.uncertainty)
+                                         uncertainty=measurement.uncertainty,
+                                         spread=measurement.spread)
     else:
         summary = getattr(reports, f"{options.measure}_summary")(measurement)
     return measurement, summary
@@ -216,7 +223,8 @@ def _calibration_of(rig):
     return rig
 
 
-def _measure_only(rec, options: BatchOptions, rig=None, noise=None):
+def _measure_only(rec, options: BatchOptions, rig=None, noise=None, cal=None, scan=None,
+                  scan_2=None):
     """(measurement, summary dict) with the noise's uncertainty alone."""
     from telefringe.io import reports
 
@@ -226,9 +234,22 @@ def _measure_only(rec, options: BatchOptions, rig=None, noise=None):
         return None, {}
     if m == "sphere":
         from telefringe.metrology import measure_sphere
+        from telefringe.metrology.spheres import sphere_spread_options
 
-        sm = measure_sphere(cloud, min_height=options.min_height)
-        return sm, reports.sphere_summary(sm.sphere, sm.base, region=sm.region)
+        spread = {} if cal is None else sphere_spread_options(
+            cal.rig, rec.radiance, cloud.shape, None if scan is None else scan.manifest,
+            scan_2)
+        if noise is not None and spread.get("image_2") is not None:
+            spread["noise"] = noise
+        elif noise is not None:
+            warnings.warn("u of radius and centre treats neighbouring points as "
+                          "independent, which understates it for two cameras: the matches' "
+                          "correlated noise enters the fit through the cameras' point-spread "
+                          "model, which needs a calibrated two-camera rig.json with a "
+                          "projector", stacklevel=2)
+        sm = measure_sphere(cloud, min_height=options.min_height, **spread)
+        return sm, reports.sphere_summary(sm.sphere, sm.base, region=sm.region,
+                                          spread=sm.spread)
     if m == "steps":
         from telefringe.metrology import measure_steps
 
@@ -401,7 +422,7 @@ def _run(job: ScanJob, options: BatchOptions, key: str, t0: float) -> dict:
         warnings.simplefilter("always")
         maps = _match_noise_maps(rec, rig) if scan_2 is not None else None
         measurement, summary = _measure(rec, options, rig,
-                                        None if maps is None else maps.expand())
+                                        None if maps is None else maps.expand(), scan, scan_2)
     t3 = time.perf_counter()
     from telefringe.io.reports import cloud_summary
 
