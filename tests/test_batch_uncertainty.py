@@ -1,6 +1,7 @@
 """`telefringe batch` with a calibrated rig (a parameter covariance): each row's figures
 carry the calibration's part of their uncertainty, the same as `telefringe measure
---rig` computes for one scan; with a bare rig they hold the noise alone and say so.
+--rig` reports for one scan (the sphere fitted through the camera's point-spread model);
+with a bare rig they hold the noise alone and say so.
 
 In this process (``workers=0``: the Dask side is tested in test_batch.py), on a sphere
 read out in a 120 x 100 px window of the fast rig, the covariance that of a synthetic
@@ -17,11 +18,11 @@ from test_calibrate import synthetic_calibration
 
 import telefringe.simulate.render as sim
 from telefringe.batch import measure_many
+from telefringe.batch.job import flatten_summary
+from telefringe.cli import main
+from telefringe.cli.reconstruct import reconstruct_to_folder
 from telefringe.io.rig_json import bare_rig_json, load_rig, save_rig
-from telefringe.io.scan_json import read_scan, write_scan
-from telefringe.metrology import measure_sphere
-from telefringe.metrology.uncertainty import sphere_uncertainty
-from telefringe.reconstruction.pipeline import reconstruct_scan
+from telefringe.io.scan_json import write_scan
 from telefringe.simulate import scenes
 from telefringe.simulate.presets import crop_camera, get_preset
 
@@ -47,14 +48,22 @@ def test_rows_carry_the_calibrations_uncertainty(data):
     row = frame.iloc[0]
     assert row["status"] == "ok", row["error"]
     assert bool(row["sphere.uncertainty_includes_calibration"])
-    # the one-scan computation: the same reconstruction, fit and propagation
+    # the one-scan commands: reconstruct, then measure sphere --rig (the fit through the
+    # camera's point-spread model, the calibration's part): every figure of the row
     cal = load_rig(data / "rig.json")
-    rec = reconstruct_scan(read_scan(data / "s0" / "scan"), cal, gamma_correction=False)
-    want = sphere_uncertainty(measure_sphere(rec.cloud), rec.cloud, cal).uncertainty["radius"]
-    assert want.u_calibration > 0
-    for key in ("u_noise", "u_calibration", "u", "U"):
-        np.testing.assert_allclose(row[f"sphere.uncertainty.radius.{key}"],
-                                   getattr(want, key), rtol=1e-9, err_msg=key)
+    reconstruct_to_folder(data / "s0" / "scan", cal, data / "one", ply=False,
+                          gamma_correction=False, force=True)
+    js = data / "one.json"
+    assert main(["measure", "sphere", str(data / "one"), "--rig", str(data / "rig.json"),
+                 "--json", str(js), "--force"]) == 0
+    want = flatten_summary(json.loads(js.read_text()), "sphere")
+    assert want["sphere.uncertainty.radius.u_calibration"] > 0
+    assert want["sphere.point_spread.variance_px2"] is not None  # the point-spread model's fit
+    for key, v in want.items():
+        if isinstance(v, float):
+            np.testing.assert_allclose(row[key], v, rtol=1e-9, err_msg=key)
+        else:
+            assert row[key] == v, key
     assert row["sphere.uncertainty.radius.u"] > row["sphere.uncertainty.radius.u_noise"]
 
 

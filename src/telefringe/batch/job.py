@@ -22,7 +22,7 @@ MEASURES = ("none", "bga", "plate", "sphere", "steps")
 #: in each scan's output folder: its row of the table, with the key of its inputs
 ROW_FILE = "row.json"
 #: bumped when the outputs of a scan change meaning (old outputs are then redone)
-OUTPUT_VERSION = 1
+OUTPUT_VERSION = 2
 
 #: the columns every row has, in order (the measurement's own follow, named
 #: ``<measure>.<field>``); their types are in :data:`telefringe.batch.table.FIXED_TYPES`
@@ -55,6 +55,12 @@ class BatchOptions:
     pixel_mm : float or None, height-map spacing.
     write_points, ply : bool, write points.npz (and the height map) / cloud.ply per scan.
     numba_threads : int or None, compiled-kernel threads per task (None: the worker's).
+    second : str or None, a two-camera rig: the second camera's scan folder of each scan,
+        relative to the scan's folder (e.g. ``"../camera_2"``); the two scans are matched
+        as ``telefringe reconstruct SCAN --second SECOND`` does, points.npz keeps the
+        matches' noise split and the plate, sphere and steps fits take it (neighbouring
+        matches share the second camera's pixels), as ``telefringe measure`` does. None:
+        the first camera and the projector.
     """
 
     measure: str = "none"
@@ -74,6 +80,7 @@ class BatchOptions:
     write_points: bool = True
     ply: bool = False
     numba_threads: int | None = None
+    second: str | None = None
 
     def __post_init__(self):
         from telefringe.io.errors import InputError
@@ -92,11 +99,17 @@ class BatchOptions:
         if self.min_height is not None and not (np.isfinite(self.min_height)
                                                 and self.min_height >= 0):
             raise InputError(f"min_height must be >= 0, got {self.min_height!r}")
+        if self.second is not None and not (isinstance(self.second, str) and self.second
+                                            and not os.path.isabs(self.second)):
+            raise InputError("second must be a folder relative to each scan's folder "
+                             f"(e.g. '../camera_2'), got {self.second!r}")
 
     def key_dict(self) -> dict:
         """The options that change a scan's outputs (not the thread count)."""
         d = asdict(self)
         d.pop("numba_threads")
+        if d["second"] is None:  # the key of a one-camera batch as before the option
+            d.pop("second")
         return d
 
 
@@ -163,14 +176,19 @@ def _numba_threads(n: int | None):
 
 
 # ----------------------------------------------------------------------------- measure
-def _measure(rec, options: BatchOptions, rig=None):
-    """(measurement, summary dict) of a reconstruction; (None, {}) for 'none'. ``rig``
-    (the rig that made it): its camera corrects the plate's detected marker centres; a
+def _measure(rec, options: BatchOptions, rig=None, noise=None, scan=None, scan_2=None):
+    """(measurement, summary dict) of a reconstruction; (None, {}) for 'none', as
+    ``telefringe measure <kind> [--rig]`` gives them for its folder. ``rig`` (the rig
+    that made it): its camera corrects the plate's detected marker centres; a
     RigCalibration with a parameter covariance (a calibrated rig.json) adds the
-    calibration's part to each figure's uncertainty, as ``telefringe measure --rig``
-    does."""
-    measurement, summary = _measure_only(rec, options, rig)
+    calibration's part to each figure's uncertainty (a two-camera cloud's through both
+    cameras, :func:`~telefringe.metrology.uncertainty.for_stereo_scan`) and fits the
+    sphere through the cameras' point-spread model. ``noise``: a two-camera match's
+    StereoNoise, which the plate's, the steps' and (through the point-spread model)
+    the sphere's fits take; ``scan``, ``scan_2``: the cameras' scans (the sphere's
+    point-spread model)."""
     cal = _calibration_of(rig)
+    measurement, summary = _measure_only(rec, options, rig, noise, cal, scan, scan_2)
     if measurement is None or cal is None:
         return measurement, summary
     from telefringe.io import reports
@@ -178,11 +196,14 @@ def _measure(rec, options: BatchOptions, rig=None):
 
     fn = {"plate": mu.plate_uncertainty, "sphere": mu.sphere_uncertainty,
           "steps": mu.steps_uncertainty, "bga": mu.bga_uncertainty}[options.measure]
+    if options.measure == "sphere" and scan_2 is not None:
+        cal = mu.for_stereo_scan(cal, scan_2)  # as 'measure sphere --rig' (two cameras)
     measurement = fn(measurement, rec.cloud, cal)
     if options.measure == "sphere":
         summary = reports.sphere_summary(measurement.sphere, measurement.base,
                                          region=measurement.region,
-                                         uncertainty=measurement.uncertainty)
+                                         uncertainty=measurement.uncertainty,
+                                         spread=measurement.spread)
     else:
         summary = getattr(reports, f"{options.measure}_summary")(measurement)
     return measurement, summary
@@ -202,7 +223,8 @@ def _calibration_of(rig):
     return rig
 
 
-def _measure_only(rec, options: BatchOptions, rig=None):
+def _measure_only(rec, options: BatchOptions, rig=None, noise=None, cal=None, scan=None,
+                  scan_2=None):
     """(measurement, summary dict) with the noise's uncertainty alone."""
     from telefringe.io import reports
 
@@ -212,13 +234,26 @@ def _measure_only(rec, options: BatchOptions, rig=None):
         return None, {}
     if m == "sphere":
         from telefringe.metrology import measure_sphere
+        from telefringe.metrology.spheres import sphere_spread_options
 
-        sm = measure_sphere(cloud, min_height=options.min_height)
-        return sm, reports.sphere_summary(sm.sphere, sm.base, region=sm.region)
+        spread = {} if cal is None else sphere_spread_options(
+            cal.rig, rec.radiance, cloud.shape, None if scan is None else scan.manifest,
+            scan_2)
+        if noise is not None and spread.get("image_2") is not None:
+            spread["noise"] = noise
+        elif noise is not None:
+            warnings.warn("u of radius and centre treats neighbouring points as "
+                          "independent, which understates it for two cameras: the matches' "
+                          "correlated noise enters the fit through the cameras' point-spread "
+                          "model, which needs a calibrated two-camera rig.json with a "
+                          "projector", stacklevel=2)
+        sm = measure_sphere(cloud, min_height=options.min_height, **spread)
+        return sm, reports.sphere_summary(sm.sphere, sm.base, region=sm.region,
+                                          spread=sm.spread)
     if m == "steps":
         from telefringe.metrology import measure_steps
 
-        st = measure_steps(cloud, min_step=options.min_step)
+        st = measure_steps(cloud, min_step=options.min_step, noise=noise)
         return st, reports.steps_summary(st)
     if m == "plate":
         from telefringe.io.errors import InputError
@@ -234,7 +269,8 @@ def _measure_only(rec, options: BatchOptions, rig=None):
         # markers half the pitch across (the plate telefringe simulates, as the paper's)
         pm = measure_plate(cloud, det.centers, rows=rows, cols=cols, pitch_mm=pitch,
                            camera=None if rig is None else rig.camera,
-                           marker_diameter_mm=0.5 * pitch, centres_sigma_px=det.center_sigma)
+                           marker_diameter_mm=0.5 * pitch, noise=noise,
+                           centres_sigma_px=det.center_sigma)
         return pm, reports.plate_summary(pm)
     from telefringe.metrology import BGANominal, BGAOptions, measure_bga
 
@@ -326,7 +362,11 @@ def run_scan(job: ScanJob, options: BatchOptions) -> dict:
     try:
         from telefringe.batch.scans import scan_digest
 
-        key = job_key(scan_digest(job.path), job.rig_digest, options)
+        digest = scan_digest(job.path)
+        second = _second_folder(job, options)
+        if second is not None:  # a two-camera scan: both cameras' images
+            digest = f"{digest}+{scan_digest(second)}"
+        key = job_key(digest, job.rig_digest, options)
         if job.output is not None and not job.force:
             old = read_row(job.output)
             if old is not None and old.get("key") == key and old.get("status") == "ok":
@@ -339,33 +379,50 @@ def run_scan(job: ScanJob, options: BatchOptions) -> dict:
                     output="", t_total_s=time.perf_counter() - t0)
 
 
+def _second_folder(job: ScanJob, options: BatchOptions) -> Path | None:
+    """The second camera's scan folder of ``job`` (None: one camera)."""
+    if options.second is None:
+        return None
+    return Path(os.path.normpath(Path(job.path) / options.second))
+
+
 def _run(job: ScanJob, options: BatchOptions, key: str, t0: float) -> dict:
     from telefringe.fringes.decode import DecodeError
+    from telefringe.fringes.phase import PhaseInputError
     from telefringe.io.errors import InputError
     from telefringe.io.scan_json import read_scan
-    from telefringe.reconstruction.pipeline import reconstruct_scan
+    from telefringe.reconstruction.cloud import TriangulationError
+    from telefringe.reconstruction.pipeline import reconstruct_scan, reconstruct_stereo_scans
 
     rig = _rig(job.rig_digest)
     scan = read_scan(job.path)
+    second = _second_folder(job, options)
+    scan_2 = None if second is None else read_scan(second)
     t1 = time.perf_counter()
     extra = {"phase_errors": None} if options.refit_gamma else {}
+    kw = dict(max_residual=options.max_residual, pixel_mm=options.pixel_mm,
+              with_height_map=options.write_points and job.output is not None,
+              gamma_correction=options.gamma_correction, method=options.method, **extra)
     try:
-        rec = reconstruct_scan(scan, rig, max_residual=options.max_residual,
-                               pixel_mm=options.pixel_mm,
-                               with_height_map=options.write_points and job.output is not None,
-                               gamma_correction=options.gamma_correction,
-                               method=options.method, **extra)
-    except DecodeError as exc:
+        if scan_2 is None:
+            rec = reconstruct_scan(scan, rig, **kw)
+        else:  # two cameras: as 'telefringe reconstruct SCAN --second SECOND'
+            rec = reconstruct_stereo_scans(scan, scan_2, rig, **kw)
+    except (DecodeError, PhaseInputError, TriangulationError) as exc:
         msg = str(exc)
-        raise InputError(msg[len(scan.source) + 2:] if msg.startswith(f"{scan.source}: ")
-                         else msg) from None
+        for s in (scan, scan_2):
+            if s is not None and msg.startswith(f"{s.source}: "):
+                msg = msg[len(s.source) + 2:]
+        raise InputError(msg) from None
     if rec.cloud.count == 0:
         raise InputError("no valid point (is the object lit and in focus, and does the rig "
                          "belong to this scan?)")
     t2 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        measurement, summary = _measure(rec, options, rig)
+        maps = _match_noise_maps(rec, rig) if scan_2 is not None else None
+        measurement, summary = _measure(rec, options, rig,
+                                        None if maps is None else maps.expand(), scan, scan_2)
     t3 = time.perf_counter()
     from telefringe.io.reports import cloud_summary
 
@@ -377,7 +434,7 @@ def _run(job: ScanJob, options: BatchOptions, key: str, t0: float) -> dict:
                t_read_s=t1 - t0, t_reconstruct_s=t2 - t1, t_measure_s=t3 - t2)
     row.update(flatten_summary(summary, options.measure))
     if job.output is not None:
-        _write(job, options, rec, measurement, summary, cs, row)
+        _write(job, options, rec, measurement, summary, cs, row, second, maps)
     row["t_write_s"] = time.perf_counter() - t3
     row["t_total_s"] = time.perf_counter() - t0
     if job.output is not None:  # the timings, written last (the folder is complete)
@@ -387,7 +444,25 @@ def _run(job: ScanJob, options: BatchOptions, key: str, t0: float) -> dict:
     return row
 
 
-def _write(job, options, rec, measurement, summary, cs, row) -> None:
+def _match_noise_maps(rec, rig):
+    """A two-camera reconstruction's matches' noise split (StereoNoiseMaps, as
+    ``telefringe reconstruct --second`` keeps in points.npz), or None with a warning
+    (the row's) where it cannot be split: the fits then treat the points as
+    independent."""
+    from telefringe.reconstruction.cloud import TriangulationError
+    from telefringe.reconstruction.stereo import match_noise_maps
+
+    try:
+        return match_noise_maps(rig, rec.coords, rec.coords_2, rec.match)
+    except TriangulationError as exc:
+        warnings.warn(f"the matches' correlated noise is not split ({exc}): u treats "
+                      "neighbouring points as independent, which understates it for two "
+                      "cameras", stacklevel=2)
+        return None
+
+
+def _write(job, options, rec, measurement, summary, cs, row, second=None,
+           maps=None) -> None:
     from telefringe.io.atomic import atomic_dir
     from telefringe.io.jsonable import write_json
 
@@ -395,9 +470,12 @@ def _write(job, options, rec, measurement, summary, cs, row) -> None:
         if options.write_points:
             from telefringe.io.reconstruction_folder import write_reconstruction
 
+            info = {"scan": job.path, **cs}
+            if second is not None:  # as 'telefringe reconstruct --second' writes it
+                info.update(second_scan=str(second), stereo_noise=maps is not None)
             write_reconstruction(tmp, rec.cloud, rec.height, texture=rec.texture,
                                  radiance=rec.radiance, title=job.name, ply=options.ply,
-                                 summary={"scan": job.path, **cs})
+                                 summary=info, stereo_noise=maps)
         if measurement is not None:
             write_json(tmp / "measurement.json", summary)
             if options.measure == "bga":

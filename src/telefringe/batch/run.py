@@ -134,6 +134,8 @@ def measure_many(scans, rig, *, measure: str = "none", output=None, force: bool 
     progress : callable, optional
         ``progress(done, total, row)`` after each scan.
     options : BatchOptions, optional; or its fields as keywords (``rows=24``, ...).
+        A two-camera rig's scans: ``second="../camera_2"`` (each scan's second camera's
+        folder, relative to it), matched as ``telefringe reconstruct --second`` does.
 
     Returns
     -------
@@ -162,6 +164,10 @@ def measure_many(scans, rig, *, measure: str = "none", output=None, force: bool 
     paths = expand_scans(scans)
     names = scan_names(paths)
     rig_obj, digest = load_batch_rig(rig)
+    n_cams = len(getattr(getattr(rig_obj, "rig", rig_obj), "cameras", ()))
+    if options.second is not None and n_cams < 2:
+        raise InputError(f"second ({options.second}) needs a rig with two cameras (camera "
+                         f"and camera_2), this one has {n_cams}")
     out = None
     if output is not None:
         out = Path(output)

@@ -73,6 +73,12 @@ def batch_cmd(
                                 help="Keep each scan's points.npz and height map."),
     ply: bool = typer.Option(False, "--ply/--no-ply", help="Also write each scan's "
                                                            "cloud.ply."),
+    second: str = typer.Option(None, "--second",
+                               help="A two-camera rig.json: the second camera's scan folder "
+                                    "of each scan, relative to the scan's folder (e.g. "
+                                    "../camera_2); the two are matched as 'reconstruct "
+                                    "--second' does and the fits take the matches' "
+                                    "correlated noise, as 'measure' does."),
 ):
     """Decode, reconstruct and measure many scans on Dask, with a table of the results.
 
@@ -118,7 +124,7 @@ def batch_cmd(
                            min_step=min_step, free_radius=free_radius,
                            gamma_correction=gamma, refit_gamma=refit_gamma, method=method,
                            max_residual=max_residual, pixel_mm=pixel_mm, write_points=points,
-                           ply=ply)
+                           ply=ply, second=second)
     from telefringe.batch.scans import expand_scans
 
     total = len(expand_scans(scans))

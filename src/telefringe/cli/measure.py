@@ -357,15 +357,11 @@ def _second_scan(out: Path, second: Path | None):
 def _stereo_calibration(out: Path, cal, scan_2):
     """The two-camera calibration for the uncertainty of a matched cloud (the second
     scan decoded as 'reconstruct --second' decodes it)."""
-    from telefringe.fringes.decode import DecodeError, decode
-    from telefringe.metrology.uncertainty import for_stereo
+    from telefringe.fringes.decode import DecodeError
+    from telefringe.metrology.uncertainty import for_stereo_scan
 
-    opts = {"noise": "auto"}
-    if getattr(cal, "phase_errors", None):
-        opts["phase_errors"] = cal.phase_errors
     try:
-        coords_2 = decode(scan_2, **opts)
-        return for_stereo(cal, coords_2)
+        return for_stereo_scan(cal, scan_2)
     except (DecodeError, ValueError) as exc:
         _fail(out, f"the second camera's scan: {exc}")
 
@@ -373,44 +369,25 @@ def _stereo_calibration(out: Path, cal, scan_2):
 def _sphere_spread_options(out: Path, cal, pf, scan_2=None) -> dict:
     """measure_sphere's point-spread options from the rig, the folder's radiance (and,
     two cameras, the second camera's scan's) and the fringe periods of the scan its
-    summary.json names (when still readable); {} where the model cannot be used."""
+    summary.json names (when still readable); {} where the model cannot be used
+    (:func:`telefringe.metrology.spheres.sphere_spread_options`)."""
     if cal is None or pf.radiance is None:
         return {}
-    rig = cal.rig
-    size = rig.camera.image_size
-    n_cams = len(rig.cameras)
-    if (rig.projector is None or n_cams not in (1, 2) or (n_cams == 2 and scan_2 is None)
-            or (size is not None and tuple(size) != (pf.cloud.shape[1], pf.cloud.shape[0]))):
-        return {}
-    from telefringe.metrology.spheres import finest_fringe_periods
+    from telefringe.metrology.spheres import sphere_spread_options
 
-    periods = None
+    manifest = None
     try:
         from telefringe.io.scan_json import load_scan_manifest
 
         scan_dir = _summary_scan(out, "scan")
         if scan_dir is not None:
-            periods = finest_fringe_periods(load_scan_manifest(scan_dir))
+            manifest = load_scan_manifest(scan_dir)
     except (OSError, ValueError, KeyError, TypeError):  # they refine the second order only
-        periods = None
-    opts = {"rig": rig, "image": pf.radiance, "fringe_periods": periods}
-    if n_cams == 2:
-        from telefringe.fringes.images import scan_radiance
-
-        size_2 = rig.cameras[rig.camera_names[1]].image_size
-        try:
-            image_2 = scan_radiance(scan_2)
-        except ValueError:  # no phase images
-            return {}
-        if size_2 is not None and image_2.shape != (size_2[1], size_2[0]):
-            _fail(out, f"the second camera's scan is {image_2.shape[1]} x "
-                       f"{image_2.shape[0]} px, the rig's second camera {size_2[0]} x "
-                       f"{size_2[1]}")
-        opts["image_2"] = image_2
-        if periods is None:
-            periods = finest_fringe_periods(scan_2.manifest)
-            opts["fringe_periods"] = periods
-    return opts
+        manifest = None
+    try:
+        return sphere_spread_options(cal.rig, pf.radiance, pf.cloud.shape, manifest, scan_2)
+    except ValueError as exc:
+        _fail(out, exc)
 
 
 def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,

@@ -970,3 +970,49 @@ def finest_fringe_periods(manifest) -> tuple[float, float] | None:
     pu = out.get("u", out.get("v"))
     pv = out.get("v", pu)
     return float(pu), float(pv)
+
+
+def sphere_spread_options(rig, image, shape, manifest=None, scan_2=None) -> dict:
+    """:func:`measure_sphere`'s point-spread options for a reconstruction made with
+    ``rig`` (what ``telefringe measure sphere --rig`` and ``telefringe batch --measure
+    sphere`` with a calibrated rig fit through); {} where the model cannot be used.
+
+    Parameters
+    ----------
+    rig : Rig (one camera + projector, or two cameras + projector).
+    image : (rows, cols) array or None, the first camera's radiance (None: {}).
+    shape : (rows, cols), the cloud's grid (a rig whose camera has another size: {}).
+    manifest : ScanManifest or None, the first camera's scan's (its finest fringe periods
+        refine the model's second order; None: the second camera's, else none).
+    scan_2 : Scan or None, the second camera's scan (two cameras; None: {}).
+
+    Raises
+    ------
+    ValueError
+        The second camera's scan does not have the rig's second camera's size.
+    """
+    if image is None:
+        return {}
+    size = rig.camera.image_size
+    n_cams = len(rig.cameras)
+    if (rig.projector is None or n_cams not in (1, 2) or (n_cams == 2 and scan_2 is None)
+            or (size is not None and tuple(size) != (shape[1], shape[0]))):
+        return {}
+    periods = None if manifest is None else finest_fringe_periods(manifest)
+    opts = {"rig": rig, "image": image, "fringe_periods": periods}
+    if n_cams == 2:
+        from telefringe.fringes.images import scan_radiance
+
+        size_2 = rig.cameras[rig.camera_names[1]].image_size
+        try:
+            image_2 = scan_radiance(scan_2)
+        except ValueError:  # no phase images
+            return {}
+        if size_2 is not None and image_2.shape != (size_2[1], size_2[0]):
+            raise ValueError(f"the second camera's scan is {image_2.shape[1]} x "
+                             f"{image_2.shape[0]} px, the rig's second camera {size_2[0]} x "
+                             f"{size_2[1]}")
+        opts["image_2"] = image_2
+        if periods is None:
+            opts["fringe_periods"] = finest_fringe_periods(scan_2.manifest)
+    return opts

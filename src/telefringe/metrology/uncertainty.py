@@ -52,6 +52,7 @@ __all__ = [
     "bga_uncertainty",
     "weight_v_of",
     "for_stereo",
+    "for_stereo_scan",
 ]
 
 #: Coverage factor of the expanded uncertainty U = k u (about 95 % for a Gaussian).
@@ -129,6 +130,26 @@ def for_stereo(calibration, coords_2, *, use_v_p: bool = True):
     sig = [getattr(coords_2, f"sigma_{a}_p", None) for a in axes]
     return stereo_calibration(calibration, maps,
                               sigmas_2=None if any(x is None for x in sig) else sig)
+
+
+def for_stereo_scan(calibration, scan_2):
+    """:func:`for_stereo` with the second camera's scan decoded as ``telefringe
+    reconstruct --second`` decodes it by default (the camera noise ``"auto"``, the
+    calibration's projector nonlinearity where it has one): what ``telefringe measure
+    sphere --rig`` and ``telefringe batch --second`` propagate the calibration of a
+    two-camera cloud with.
+
+    Raises
+    ------
+    telefringe.fringes.decode.DecodeError, ValueError
+        The scan cannot be decoded, or does not suit the calibration.
+    """
+    from telefringe.fringes.decode import decode
+
+    opts = {"noise": "auto"}
+    if getattr(calibration, "phase_errors", None):
+        opts["phase_errors"] = calibration.phase_errors
+    return for_stereo(calibration, decode(scan_2, **opts))
 
 
 def _factor(calibration):

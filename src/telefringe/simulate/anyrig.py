@@ -276,7 +276,8 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
     spread over the scans, ``sigma_cal`` over ``n_cal`` rigs drawn from the covariance);
     ``sigma_ratio`` compares the per-pixel spread over the scans with the predicted
     ``sigma_line`` along the normal. Steps (``default_steps``) and sphere
-    (``default_sphere``): one scan each; their noise uncertainty from the fits.
+    (``default_sphere``): one scan each; their noise uncertainty from the fits (a
+    two-camera rig's with the matches' correlated noise).
     """
     from telefringe.metrology.planes import fit_plane
     from telefringe.metrology.spheres import measure_sphere
@@ -332,8 +333,9 @@ def run_anyrig(vrig: VirtualRig, *, n_poses: int = 12, seed: int = 0, n_mc: int 
         gauge = default_steps()
         scans, _ = scan_scene(vrig, gauge, seed=seed + 301)
         coords = _decode_all(scans, calib, noise)
-        cloud = _triangulate(calib.rig, coords)
-        meas = measure_steps(cloud)
+        # two cameras: the matches' correlated noise in the levels' fit (as 'measure steps')
+        cloud, pnoise = _triangulate_with_noise(calib.rig, coords)
+        meas = measure_steps(cloud, noise=pnoise)
         truth = np.diff(np.concatenate([[0.0], gauge.blocks[:, 5]]))
         cal = np.array([measure_steps(_triangulate(r, coords)).step_heights for r in rigs])
         sz = float(np.nanmedian(cloud.sigma_line[cloud.mask]))
