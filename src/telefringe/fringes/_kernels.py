@@ -528,6 +528,8 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
         var = noise_c + noise_gain * max(quadrature level, 0) and every output.
     out_* : (rows, cols) arrays (the unused ones may be (1, 1)): out_u, out_mod, out_sigma,
         out_bg, out_exp float64; out_mask, out_sat, out_low, out_shadow, out_rel bool.
+        out_exp is written only where the finest level has several exposures (else it is
+        that level's one exposure everywhere: the caller fills it).
 
     ``stacks`` may hold more arrays than ``lev_first[-1]`` (padding, so that one compiled
     signature serves every ladder: see telefringe.decode._fused).
@@ -542,6 +544,8 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
     max_res32 = _F32(max_res)
     n_blocks = (rows + block_rows - 1) // block_rows
     dt = stacks[0].dtype
+    # the exposure map is written only where the finest level has several exposures
+    hdr_last = lev_first[n_lev] - lev_first[n_lev - 1] > 1
     for blk in nb.prange(n_blocks):
         # per level: the chosen (HDR) sums, phase, S^2 + C^2, weight before the noise
         # factor, and whether a sample-free exposure was found
@@ -647,7 +651,7 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                         if first_mem:
                             for j in range(nj):
                                 found[j] = top[j] < max_value
-                            if full:
+                            if full and hdr_last and lev == n_lev - 1:
                                 for j in range(nj):
                                     expo[j] = e
                         else:  # a shorter exposure where the longer ones saturate
@@ -666,8 +670,9 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                                     s2[j] = ms2[j] if sel[j] else s2[j]
                                 for j in range(nj):
                                     c2[j] = mc2[j] if sel[j] else c2[j]
-                                for j in range(nj):
-                                    expo[j] = e if sel[j] else expo[j]
+                                if hdr_last and lev == n_lev - 1:
+                                    for j in range(nj):
+                                        expo[j] = e if sel[j] else expo[j]
                     _phase32(s32, c32, lv_ph[lev], m2, nj)
                     inv_n = 1.0 / n_k
                     thr = min_mod2[lev]
@@ -697,10 +702,12 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                             wl[j] = w if d > _ZERO32 else _ZERO32
                         if lev == n_lev - 1:
                             o_bg = out_bg[r, j0:j1]
-                            o_exp = out_exp[r, j0:j1]
                             for j in range(nj):
                                 o_bg[j] = float(sa[j]) * inv_n
-                                o_exp[j] = expo[j]
+                            if hdr_last:
+                                o_exp = out_exp[r, j0:j1]
+                                for j in range(nj):
+                                    o_exp[j] = expo[j]
                     else:
                         wscale = _F32((2.0 * periods[lev] * inv_n) ** 2)
                         for j in range(nj):

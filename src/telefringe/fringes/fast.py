@@ -442,8 +442,12 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     names = (("sigma", np.float64), ("background", np.float64), ("exposure", np.float64),
              ("saturated", bool), ("low_modulation", bool), ("shadow", bool),
              ("order_reliable", bool))
+    # one exposure on the finest level: the exposure map is that constant, a read-only
+    # view (no plane of 8 bytes per pixel to write)
+    one_exposure = len(levels[-1]) == 1
     for name, t in names:
-        out[name] = _recycle.empty(shape if full else one, dtype=t)
+        small = not full or (name == "exposure" and one_exposure)
+        out[name] = _recycle.empty(one if small else shape, dtype=t)
     noise = noise if noise is not None else NoiseModel()
     if n_mem > _MAX_MEMBERS:
         raise DecodeError(f"the fused kernel takes at most {_MAX_MEMBERS} phase groups per "
@@ -466,6 +470,8 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
         float(noise.gain), int(block_rows), _tile_width(shape[1], tile),
         out["coordinate"], out["valid"], out["modulation"],
         *(out[name] for name, _ in names))
+    if full and one_exposure:
+        out["exposure"] = np.broadcast_to(np.float64(levels[-1][0][1]), shape)
     if dtype != np.float64:
         out["coordinate"] = out["coordinate"].astype(dtype)
     return out
