@@ -481,3 +481,74 @@ def test_table_cache_is_thread_safe_and_bounded(monkeypatch):
     with dec._TABLE_CACHE_LOCK:
         total = sum(dec._table_bytes(v) for v in dec._TABLE_CACHE.values())
         assert len(dec._TABLE_CACHE) <= 4 and total <= dec._TABLE_CACHE_MAX_BYTES
+
+
+def _faint_fine_stacks():
+    """The gamma-2.2 scan, its finest fringes' contrast cut to 1/8 on the right half: the
+    coarse levels' share of the combination grows 64x there (the kernel keeps more of
+    their series in those tiles)."""
+    x, stacks = _scan_stacks(gamma=2.2, rows=48, cols=160)
+    fine = stacks[2].astype(float)
+    mean = fine.mean(axis=0, keepdims=True)
+    fine[:, :, 80:] = mean[:, :, 80:] + (fine[:, :, 80:] - mean[:, :, 80:]) / 8
+    return x, [stacks[0], stacks[1], np.round(fine).astype(np.uint8)]
+
+
+@pytest.mark.parametrize("faint", [False, True], ids=["even", "faint fine level"])
+def test_cut_series_stay_within_their_bounds(monkeypatch, faint):
+    """The fused kernel cuts each level's correction series per tile to what the result
+    needs (telefringe.fringes._kernels.fused_ladder): every level's cut moves u_p by at
+    most SERIES_TAIL * L / (2 pi p_fine), and its noise factor moves sigma by at most
+    NF_SERIES_TOL (relative). Against every term: u_p within 3 levels x that (6e-7 px
+    here) plus a float32 ulp of the fine phase (pi: 2.4e-7 rad, 4.8e-7 px), both
+    passes; sigma within 3 x NF_SERIES_TOL plus float32 rounding (2.4e-7); masks equal
+    (the order prediction moved by at most ORDER_TOL). The one-period model is the paper
+    rig's (27 terms: the cut matters most there)."""
+    from telefringe.fringes import fast
+
+    x, stacks = _faint_fine_stacks() if faint else _scan_stacks(gamma=2.2, rows=48, cols=160)
+    fit = decode(_scan(stacks)).axes["u"].phase_errors
+    models = [_PAPER_RIG_MODEL] + [m for m in fit.models if m.periods != 1]
+    rig = {("u", m.periods, 4): m for m in models}
+    assert [m.periods for m in models] == [1, 8, 64]
+    assert len(fast._model_series(_PAPER_RIG_MODEL)[0]) == 27
+    cut = decode(_scan(stacks), phase_errors=rig)
+    cut_fast = decode_axis_fast(stacks, (1, 8, 64), 4, length=800, phase_errors=models)
+    monkeypatch.setattr(fast, "SERIES_CUT", False)
+    every = decode(_scan(stacks), phase_errors=rig)
+    every_fast = decode_axis_fast(stacks, (1, 8, 64), 4, length=800, phase_errors=models)
+    bound_x = 3 * fast.SERIES_TAIL * 800 / (2 * np.pi * 64) + 2.4e-7 * 800 / (2 * np.pi * 64)
+    assert np.array_equal(cut.mask, every.mask) and cut.mask.mean() > 0.99
+    m = cut.mask
+    d = np.abs(cut.u_p - every.u_p)[m]
+    assert d.max() <= bound_x, d.max()
+    assert d.max() > 0  # (the series were cut)
+    rel = np.abs(cut.sigma_u_p[m] / every.sigma_u_p[m] - 1)
+    assert rel.max() <= 3 * fast.NF_SERIES_TOL + 2.4e-7, rel.max()
+    assert np.array_equal(cut_fast.mask, every_fast.mask)
+    m = cut_fast.mask
+    assert np.abs(cut_fast.coordinate - every_fast.coordinate)[m].max() <= bound_x
+
+
+def test_series_tails_bound_the_dropped_terms():
+    """fast._series_tails: the bound on what the first n terms leave out holds at every n
+    (the exact correction and noise factor, from the model, against the partial sums)."""
+    from telefringe.fringes import fast
+
+    model = _PAPER_RIG_MODEL
+    ser = fast._model_series(model)
+    a, b, c0, d = ser[:4]
+    tg, tn, (hi, lo) = fast._series_tails(ser, 28)
+    grid = np.linspace(-np.pi, np.pi, 4001)
+    exact_g = grid - model._invert(grid)
+    exact_nf = 1.0 / (1.0 + model.slope(model._invert(grid)))
+    assert lo <= exact_nf.min() ** -2 and exact_nf.max() ** -2 <= hi
+    for n in range(0, 29):
+        t = np.arange(1, min(n, len(a)) + 1)
+        g = c0 + (a[:t.size, None] * np.cos(d * t[:, None] * grid)
+                  + b[:t.size, None] * np.sin(d * t[:, None] * grid)).sum(axis=0)
+        gd = (d * t[:, None] * (-a[:t.size, None] * np.sin(d * t[:, None] * grid)
+                                + b[:t.size, None] * np.cos(d * t[:, None] * grid))).sum(axis=0)
+        assert np.abs(g - exact_g).max() <= tg[n]
+        assert np.abs((1.0 - gd) / exact_nf - 1.0).max() <= tn[n]
+    assert tg[0] > 1e-2 and tg[27] <= 1.1 * fast.SERIES_TAIL

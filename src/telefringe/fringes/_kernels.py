@@ -167,37 +167,15 @@ def _wrap32(q):
     return q + _TWO_PI32 if q <= -_PI32 else q
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
-def _series_correct32(ph, s, c, m2, ca, cb, c0, d, n, sc, nj, with_nf, da, db, fac):
-    """ph = wrap(ph - g(ph)) in place, g(phi) = c0 + sum_{t=1..n} ca[t-1] cos(t d phi) +
-    cb[t-1] sin(t d phi) (float32), the measured phase's cos and sin taken from the sums:
-    exp(i phi) = (C - i S) / R, then cos(d phi), sin(d phi) from its d-th power. No table
-    look-up and no trigonometric function: the loops vectorise.
-
-    The series by Clenshaw's recurrence in x = cos(d phi): b_t = a_t + 2 x b_{t+1} -
-    b_{t+2} from t = n down to 1, then sum_t a_t cos(t d phi) = x b_1 - b_2 (and for the
-    sine terms, with their own b, sin(d phi) b_1): one multiply-add and one subtraction per
-    term and chain. Eight terms per pass over the tile (four in the first pass when that
-    covers the padded count), the chains' state in registers within a pass and stored
-    between passes: ``ca``, ``cb`` (and ``da``, ``db``) must hold n rounded up to a
-    multiple of SERIES_BLOCK coefficients, zero beyond n (a zero coefficient at the top
-    leaves every b exactly 0: the padding changes no bit of the result). Where S = C = 0
-    (no phase) g is c0.
-
-    Accuracy (float32, against the exact inverse; tests/test_decode_fast.py): the
-    correction within 4.1e-7 rad (the polynomial arctangent's error included), the noise
-    factor within 5.5e-7 relative (the paper rig's learned models, and a strong 3-step
-    one), as with the complex powers used before.
-
-    With ``with_nf``, also the noise factor d(true)/d(measured) = 1 - g'(phi) into ``fac``
-    by the same recurrence: g' = sum_t da[t-1] cos(t d phi) + db[t-1] sin(t d phi), da = t
-    d cb, db = -t d ca (set up and checked against the exact factor in
-    telefringe.fringes.fast). ``sc`` : (10, >= nj) float32 scratch."""
+@nb.njit(inline="always", error_model="numpy")
+def _series_angles32(s, c, m2, d, sc, nj):
+    """cos(d phi), sin(d phi) of the measured phase into sc[0], sc[1] (float32), from the
+    sums: exp(i phi) = (C - i S) / R, then its d-th power (in one pass up to d = 4, then
+    multiplied in). 0 where S = C = 0. Uses sc[2], sc[3] as scratch."""
     x = sc[0]
     y = sc[1]
     zr = sc[2]
     zi = sc[3]
-    # cos(d phi), sin(d phi): exp(i phi) multiplied in d - 1 times (in one pass up to d = 4)
     for j in range(nj):
         r2 = m2[j]
         inv = _ONE32 / math.sqrt(r2 if r2 > _ZERO32 else _ONE32)
@@ -222,167 +200,131 @@ def _series_correct32(ph, s, c, m2, ca, cb, c0, d, n, sc, nj, with_nf, da, db, f
             b = y[j]
             x[j] = a * zr[j] - b * zi[j]
             y[j] = a * zi[j] + b * zr[j]
-    # the chains' b_{t+1}, b_{t+2}: cosine and sine terms of g (and of g'); the first pass
-    # starts them at 0, the last one assembles g (and 1 - g') instead of storing them
+
+
+@nb.njit(inline="always", error_model="numpy")
+def _series_sum32(x, y, ca, cb, n, sc, out, nj):
+    """out[j] = sum_{t=1..n} ca[t-1] cos(t theta) + cb[t-1] sin(t theta), float32, from
+    x = cos theta, y = sin theta (1-D scratch rows), by Clenshaw's recurrence in x:
+    b_t = a_t + 2 x b_{t+1} - b_{t+2} from t = n down to 1, then sum_t a_t cos(t theta) =
+    x b_1 - b_2 and, with the sine coefficients' own chain, sum_t b_t sin(t theta) =
+    sin(theta) b_1: one multiply-add and one subtraction per term and chain. Eight terms
+    per pass over the row (four in the first pass when n is 4 more than a multiple of 8),
+    the chains' state in registers within a pass and in sc[2..5] between passes. n is a
+    multiple of SERIES_BLOCK, ca and cb hold at least n coefficients; n = 0 gives 0."""
     p1 = sc[2]
     p2 = sc[3]
     q1 = sc[4]
     q2 = sc[5]
-    u1 = sc[6]
-    u2 = sc[7]
-    v1 = sc[8]
-    v2 = sc[9]
     z = _ZERO32
-    t = (n + SERIES_BLOCK - 1) // SERIES_BLOCK * SERIES_BLOCK  # (past the top pass' terms)
+    t = n
     top = True
     while t > 0:
-        # passes of 8 terms, the first of 4 when the padded count is 4 more than a multiple
-        # of 8 (each variant's loop free of branches)
         wide = t % 8 == 0
         t -= 8 if wide else 4
         last = t == 0
         if not wide:
             ka4 = _coef4(ca, t)
             kb4 = _coef4(cb, t)
-            if with_nf:
-                kd4 = _coef4(da, t)
-                ke4 = _coef4(db, t)
-            if last and with_nf:
+            if last:  # (n = 4: top and last)
                 for j in range(nj):
-                    x2 = x[j] + x[j]
-                    pa, pb = _clenshaw4(x2, ka4, z, z)
-                    qa, qb = _clenshaw4(x2, kb4, z, z)
-                    ua, ub = _clenshaw4(x2, kd4, z, z)
-                    va, vb = _clenshaw4(x2, ke4, z, z)
-                    _series_end(ph, fac, x, y, m2, c0, pa, pb, qa, qb, ua, ub, va, vb, j)
-            elif last:
-                for j in range(nj):
-                    x2 = x[j] + x[j]
-                    pa, pb = _clenshaw4(x2, ka4, z, z)
-                    qa, qb = _clenshaw4(x2, kb4, z, z)
-                    _series_end(ph, fac, x, y, m2, c0, pa, pb, qa, qb, z, z, z, z, j, False)
-            elif with_nf:
-                for j in range(nj):
-                    x2 = x[j] + x[j]
-                    p1[j], p2[j] = _clenshaw4(x2, ka4, z, z)
-                    q1[j], q2[j] = _clenshaw4(x2, kb4, z, z)
-                    u1[j], u2[j] = _clenshaw4(x2, kd4, z, z)
-                    v1[j], v2[j] = _clenshaw4(x2, ke4, z, z)
+                    xj = x[j]
+                    pa, pb = _clenshaw4(xj + xj, ka4, z, z)
+                    qa, _ = _clenshaw4(xj + xj, kb4, z, z)
+                    out[j] = (pa * xj - pb) + qa * y[j]
             else:
                 for j in range(nj):
-                    x2 = x[j] + x[j]
-                    p1[j], p2[j] = _clenshaw4(x2, ka4, z, z)
-                    q1[j], q2[j] = _clenshaw4(x2, kb4, z, z)
+                    xj = x[j]
+                    p1[j], p2[j] = _clenshaw4(xj + xj, ka4, z, z)
+                    q1[j], q2[j] = _clenshaw4(xj + xj, kb4, z, z)
             top = False
             continue
         ka = _coef8(ca, t)
         kb = _coef8(cb, t)
-        if with_nf:
-            kd = _coef8(da, t)
-            ke = _coef8(db, t)
         if top and last:
-            if with_nf:
-                for j in range(nj):
-                    x2 = x[j] + x[j]
-                    pa, pb = _clenshaw8(x2, ka, z, z)
-                    qa, qb = _clenshaw8(x2, kb, z, z)
-                    ua, ub = _clenshaw8(x2, kd, z, z)
-                    va, vb = _clenshaw8(x2, ke, z, z)
-                    _series_end(ph, fac, x, y, m2, c0, pa, pb, qa, qb, ua, ub, va, vb, j)
-            else:
-                for j in range(nj):
-                    x2 = x[j] + x[j]
-                    pa, pb = _clenshaw8(x2, ka, z, z)
-                    qa, qb = _clenshaw8(x2, kb, z, z)
-                    _series_end(ph, fac, x, y, m2, c0, pa, pb, qa, qb, z, z, z, z, j, False)
-        elif top:
-            if with_nf:
-                for j in range(nj):
-                    x2 = x[j] + x[j]
-                    p1[j], p2[j] = _clenshaw8(x2, ka, z, z)
-                    q1[j], q2[j] = _clenshaw8(x2, kb, z, z)
-                    u1[j], u2[j] = _clenshaw8(x2, kd, z, z)
-                    v1[j], v2[j] = _clenshaw8(x2, ke, z, z)
-            else:
-                for j in range(nj):
-                    x2 = x[j] + x[j]
-                    p1[j], p2[j] = _clenshaw8(x2, ka, z, z)
-                    q1[j], q2[j] = _clenshaw8(x2, kb, z, z)
-        elif last:
-            if with_nf:
-                for j in range(nj):
-                    x2 = x[j] + x[j]
-                    pa, pb = _clenshaw8(x2, ka, p1[j], p2[j])
-                    qa, qb = _clenshaw8(x2, kb, q1[j], q2[j])
-                    ua, ub = _clenshaw8(x2, kd, u1[j], u2[j])
-                    va, vb = _clenshaw8(x2, ke, v1[j], v2[j])
-                    _series_end(ph, fac, x, y, m2, c0, pa, pb, qa, qb, ua, ub, va, vb, j)
-            else:
-                for j in range(nj):
-                    x2 = x[j] + x[j]
-                    pa, pb = _clenshaw8(x2, ka, p1[j], p2[j])
-                    qa, qb = _clenshaw8(x2, kb, q1[j], q2[j])
-                    _series_end(ph, fac, x, y, m2, c0, pa, pb, qa, qb, z, z, z, z, j, False)
-        else:
-            if with_nf:
-                for j in range(nj):
-                    x2 = x[j] + x[j]
-                    p1[j], p2[j] = _clenshaw8(x2, ka, p1[j], p2[j])
-                    q1[j], q2[j] = _clenshaw8(x2, kb, q1[j], q2[j])
-                    u1[j], u2[j] = _clenshaw8(x2, kd, u1[j], u2[j])
-                    v1[j], v2[j] = _clenshaw8(x2, ke, v1[j], v2[j])
-            else:
-                for j in range(nj):
-                    x2 = x[j] + x[j]
-                    p1[j], p2[j] = _clenshaw8(x2, ka, p1[j], p2[j])
-                    q1[j], q2[j] = _clenshaw8(x2, kb, q1[j], q2[j])
-        top = False
-    if n <= 0:  # no term
-        for j in range(nj):
-            ph[j] = _wrap32(ph[j] - c0)
-        if with_nf:
             for j in range(nj):
-                fac[j] = _ONE32
+                xj = x[j]
+                pa, pb = _clenshaw8(xj + xj, ka, z, z)
+                qa, _ = _clenshaw8(xj + xj, kb, z, z)
+                out[j] = (pa * xj - pb) + qa * y[j]
+        elif top:
+            for j in range(nj):
+                xj = x[j]
+                p1[j], p2[j] = _clenshaw8(xj + xj, ka, z, z)
+                q1[j], q2[j] = _clenshaw8(xj + xj, kb, z, z)
+        elif last:
+            for j in range(nj):
+                xj = x[j]
+                pa, pb = _clenshaw8(xj + xj, ka, p1[j], p2[j])
+                qa, _ = _clenshaw8(xj + xj, kb, q1[j], q2[j])
+                out[j] = (pa * xj - pb) + qa * y[j]
+        else:
+            for j in range(nj):
+                xj = x[j]
+                p1[j], p2[j] = _clenshaw8(xj + xj, ka, p1[j], p2[j])
+                q1[j], q2[j] = _clenshaw8(xj + xj, kb, q1[j], q2[j])
+        top = False
+    if n <= 0:
+        for j in range(nj):
+            out[j] = _ZERO32
 
 
-@nb.njit(inline="always", error_model="numpy")
-def _series_end(ph, fac, x, y, m2, c0, pa, pb, qa, qb, ua, ub, va, vb, j, with_nf=True):
-    """The last pass of :func:`_series_correct32` at pixel j: g from the chains' b_1, b_2
-    (pa, pb: cosine terms; qa, qb: sine terms), ph[j] = wrap(ph[j] - g); with ``with_nf``
-    also fac[j] = 1 - g' from the derivative's chains (ua, ub, va, vb)."""
-    xj = x[j]
-    yj = y[j]
-    ok = m2[j] > _ZERO32
-    g = (pa * xj - pb) + qa * yj
-    ph[j] = _wrap32(ph[j] - (c0 + (g if ok else _ZERO32)))
+@nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
+def _series_correct32(ph, s, c, m2, ca, cb, c0, d, ng, sc, nj, with_nf, da, db, nnf, fac):
+    """ph = wrap(ph - g(ph)) in place, g(phi) = c0 + sum_{t=1..ng} ca[t-1] cos(t d phi) +
+    cb[t-1] sin(t d phi) (float32), the measured phase's cos(d phi), sin(d phi) from the
+    sums (:func:`_series_angles32`) and the series by :func:`_series_sum32`: no table
+    look-up and no trigonometric function, the loops vectorise. Where S = C = 0 (no phase)
+    g is c0. With ``with_nf``, also the noise factor d(true)/d(measured) = 1 - g'(phi) into
+    ``fac`` from the derivative's series, its first ``nnf`` terms: g' = sum_t da[t-1]
+    cos(t d phi) + db[t-1] sin(t d phi), da = t d cb, db = -t d ca (set up in
+    telefringe.fringes.fast, which chooses ng and nnf, multiples of SERIES_BLOCK, for the
+    accuracy asked: see the fused kernel). ``sc`` : (8, >= nj) float32 scratch.
+
+    Accuracy with every term (float32, against the exact inverse;
+    tests/test_decode_fast.py): the correction within 4.1e-7 rad (the polynomial
+    arctangent's error included), the noise factor within 5.5e-7 relative."""
+    x = sc[0]
+    y = sc[1]
+    _series_angles32(s, c, m2, d, sc, nj)
+    g = sc[6]
+    _series_sum32(x, y, ca, cb, ng, sc, g, nj)
+    for j in range(nj):
+        ok = m2[j] > _ZERO32
+        ph[j] = _wrap32(ph[j] - (c0 + (g[j] if ok else _ZERO32)))
     if with_nf:
-        gd = (ua * xj - ub) + va * yj
-        fac[j] = _ONE32 - gd if ok else _ONE32
+        gd = sc[7]
+        _series_sum32(x, y, da, db, nnf, sc, gd, nj)
+        for j in range(nj):
+            ok = m2[j] > _ZERO32
+            fac[j] = _ONE32 - gd[j] if ok else _ONE32
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath={"contract"})
 def series_correct32_array(s, c, ca, cb, c0, d, n, out, da=None, db=None, fac=None):
     """The fused kernel's phase and series correction over 1-D float32 sums S, C (for
-    tests): out = wrap(atan2(-S, C) - g), g as in :func:`_series_correct32` (n terms of
-    ca, cb: padded here); with da, db (float32, like ca, cb) also the noise factor into
-    ``fac`` (float32, like out)."""
+    tests): out = wrap(atan2(-S, C) - g), g as in :func:`_series_correct32` with every one
+    of the n terms of ca, cb (padded here); with da, db (float32, like ca, cb) also the
+    noise factor from all of their n terms into ``fac`` (float32, like out)."""
     nj = s.size
     m2 = np.empty(nj, dtype=np.float32)
     _phase32(s, c, out, m2, nj)
-    sc = np.empty((10, nj), dtype=np.float32)
+    sc = np.empty((8, nj), dtype=np.float32)
     npad = (n + SERIES_BLOCK - 1) // SERIES_BLOCK * SERIES_BLOCK
     pa = np.zeros(npad, dtype=np.float32)
     pb = np.zeros(npad, dtype=np.float32)
     pa[:n] = ca[:n]
     pb[:n] = cb[:n]
     if fac is None:
-        _series_correct32(out, s, c, m2, pa, pb, c0, d, n, sc, nj, False, pa, pb, sc[0])
+        _series_correct32(out, s, c, m2, pa, pb, c0, d, npad, sc, nj, False, pa, pb, 0,
+                          sc[0])
     else:
         pda = np.zeros(npad, dtype=np.float32)
         pdb = np.zeros(npad, dtype=np.float32)
         pda[:n] = da[:n]
         pdb[:n] = db[:n]
-        _series_correct32(out, s, c, m2, pa, pb, c0, d, n, sc, nj, True, pda, pdb, fac)
+        _series_correct32(out, s, c, m2, pa, pb, c0, d, npad, sc, nj, True, pda, pdb, npad,
+                          fac)
 
 
 @nb.njit(inline="always")
@@ -497,23 +439,62 @@ def _phase32(s, c, ph, m2, nj):
         ph[j] = atan2_poly32(-a, b)
 
 
+@nb.njit(inline="always", error_model="numpy")
+def _share_max(wl, rden, buf, nj):
+    """max_j wl[j] * rden[j] (>= 0, finite; 0 for nj = 0): a level's largest share of
+    the combination's weight in a tile, rden holding 1 / the weights' sum (0 where the
+    pixel does not count). The products go through ``buf`` (float32) and their maximum
+    is taken on their bit patterns as int32 (the same order for floats >= 0): an integer
+    maximum, which vectorises, where a float one would not without fast-math flags."""
+    for j in range(nj):
+        buf[j] = wl[j] * rden[j]
+    bits = buf.view(np.int32)
+    top = np.int32(0)
+    for j in range(nj):
+        b = bits[j]
+        top = b if b > top else top
+    buf[0] = _ZERO32
+    bits[0] = top
+    return buf[0]
+
+
+@nb.njit(inline="always")
+def _terms(tail, scale, tol, n_max):
+    """The fewest terms n (a multiple of SERIES_BLOCK, at most n_max) with
+    scale * tail[n] <= tol; n_max where none is."""
+    n = 0
+    while n < n_max and scale * tail[n] > tol:
+        n += SERIES_BLOCK
+    return n
+
+
 @nb.njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract"})
 def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, cw, s2w, c2w, ew,
                  periods, length, tables, nf_tables, has_table, ser_a, ser_b,
-                 ser_c0, ser_d, ser_n, has_series, ser_da, ser_db, max_value, min_mod2,
+                 ser_c0, ser_d, ser_n, has_series, ser_da, ser_db, ser_tg, ser_tn, wbound,
+                 tol_x, tol_next, tol_nf, max_value, min_mod2,
                  max_res, full, noise_c, noise_gain, block_rows, tile,
                  out_u, out_mask, out_mod,
                  out_sigma, out_bg, out_exp, out_sat, out_low, out_shadow, out_rel):
     """One pass over the images of a hierarchical ladder (coarse to fine, the first level
     one period), per camera pixel: each level's N-step sums, HDR choice between its
     exposures, phase (polynomial atan2), optional nonlinearity correction (series or
-    table), hierarchical unwrapping with the residual check, inverse-variance combination, masks
-    (saturation, low modulation, residual, range).
+    table), hierarchical unwrapping with the residual check, inverse-variance combination,
+    masks (saturation, low modulation, residual, range).
 
     Precision: sums exact in float32 where ``exact32`` (else float64, then rounded to
     float32); phase, S^2 + C^2 and unwrapping in float32; every level's absolute phase
     ``ph + 2 pi k``, its coordinate x_l and the combination ``x = sum_l w_l x_l / sum_l
     w_l`` in float64 (the weights w_l in float32).
+
+    The corrections' series are cut per tile of pixels to what the result needs (the
+    dropped terms bounded by the tails ``ser_tg``, ``ser_tn``): level l's correction
+    error e_l (rad) moves x by at most s_l e_l L / (2 pi p_l), s_l its largest share
+    w_l / sum_k w_k of the combination in the tile (bounded before the correction with
+    the noise factors' range ``wbound``), and the next level's order prediction by
+    e_l p_{l+1} / p_l; its noise factor's relative error f_l moves the weights by 2 f_l
+    and sigma by at most s_l f_l. The kernel keeps s_l e_l L / (2 pi p_l) <= tol_x (px),
+    e_l p_{l+1} / p_l <= tol_next (rad) and s_l f_l <= tol_nf, or uses every term.
 
     Levels and members: level ``l`` is made of the stacks ``lev_first[l]`` to
     ``lev_first[l + 1] - 1`` of ``stacks`` (its exposures, longest first); per pixel the
@@ -535,6 +516,11 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
         T a multiple of SERIES_BLOCK, zero beyond each level's ser_n terms.
     ser_da, ser_db : (L, T) float32: its derivative's series; the noise factor (full
         only) is 1 - g' from it (no table look-up: where has_series and not has_table).
+    ser_tg, ser_tn : (L, T + 1) float64: bounds of what the terms after the first n drop
+        (n = 0..T): of the correction (rad) and of the noise factor (relative).
+    wbound : (L, 2) float32: the factor 1 / nf^2 of a level's weight lies within
+        [wbound[l, 1], wbound[l, 0]] (1, 1 without a correction).
+    tol_x : float, px; tol_next, tol_nf : float (see above).
     min_mod2 : (L,) float32, thresholds on S^2 + C^2 (rounded up to float32).
     max_res : float, rad.
     full : bool. False: weights (p B)^2 and only out_u, out_mask, out_mod (B of the
@@ -542,6 +528,8 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
         var = noise_c + noise_gain * max(quadrature level, 0) and every output.
     out_* : (rows, cols) arrays (the unused ones may be (1, 1)): out_u, out_mod, out_sigma,
         out_bg, out_exp float64; out_mask, out_sat, out_low, out_shadow, out_rel bool.
+        out_exp is written only where the finest level has several exposures (else it is
+        that level's one exposure everywhere: the caller fills it).
 
     ``stacks`` may hold more arrays than ``lev_first[-1]`` (padding, so that one compiled
     signature serves every ladder: see telefringe.decode._fused).
@@ -556,23 +544,31 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
     max_res32 = _F32(max_res)
     n_blocks = (rows + block_rows - 1) // block_rows
     dt = stacks[0].dtype
+    # the exposure map is written only where the finest level has several exposures
+    hdr_last = lev_first[n_lev] - lev_first[n_lev - 1] > 1
     for blk in nb.prange(n_blocks):
-        # chosen (HDR) sums of the current level, and one member's sums
-        s32 = np.empty(tile, dtype=np.float32)
-        c32 = np.empty(tile, dtype=np.float32)
+        # per level: the chosen (HDR) sums, phase, S^2 + C^2, weight before the noise
+        # factor, and whether a sample-free exposure was found
+        lv_s = np.empty((n_lev, tile), dtype=np.float32)
+        lv_c = np.empty((n_lev, tile), dtype=np.float32)
+        lv_ph = np.empty((n_lev, tile), dtype=np.float32)
+        lv_m2 = np.empty((n_lev, tile), dtype=np.float32)
+        lv_w = np.empty((n_lev, tile), dtype=np.float32)
+        lv_found = np.empty((n_lev, tile), dtype=np.bool_)
+        n_g = np.empty(n_lev, dtype=np.int64)
+        n_nf = np.empty(n_lev, dtype=np.int64)
         top = np.empty(tile, dtype=dt)
         ms32 = np.empty(tile, dtype=np.float32)
         mc32 = np.empty(tile, dtype=np.float32)
         mtop = np.empty(tile, dtype=dt)
         s64 = np.empty(tile)
         c64 = np.empty(tile)
-        found = np.empty(tile, dtype=np.bool_)
         sel = np.empty(tile, dtype=np.bool_)
-        m2 = np.empty(tile, dtype=np.float32)
-        ph = np.empty(tile, dtype=np.float32)
+        pv = np.empty(tile, dtype=np.bool_)
         phi_abs = np.empty(tile, dtype=np.float32)
         kk = np.empty(tile, dtype=np.float32)
         w32 = np.empty(tile, dtype=np.float32)
+        wden = np.empty(tile, dtype=np.float32)
         num = np.empty(tile)  # float64: sum_l w_l x_l of the coarse levels
         den64 = np.empty(tile)
         den = np.empty(tile, dtype=np.float32)  # (sigma: float32 is enough)
@@ -585,14 +581,13 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
         msa = np.empty(tile, dtype=np.float32)
         ms2 = np.empty(tile, dtype=np.float32)
         mc2 = np.empty(tile, dtype=np.float32)
-        dvar = np.empty(tile, dtype=np.float32)
         expo = np.empty(tile)
         sat = np.empty(tile, dtype=np.bool_)
         low = np.empty(tile, dtype=np.bool_)
         shadow = np.empty(tile, dtype=np.bool_)
         rel = np.empty(tile, dtype=np.bool_)
         # nonlinearity correction by series
-        ser_sc = np.empty((10, tile), dtype=np.float32)
+        ser_sc = np.empty((8, tile), dtype=np.float32)
         nfac = np.empty(tile, dtype=np.float32)
         r0 = blk * block_rows
         r1 = min(rows, r0 + block_rows)
@@ -603,9 +598,13 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                 o_u = out_u[r, j0:j1]
                 o_mask = out_mask[r, j0:j1]
                 o_mod = out_mod[r, j0:j1]
+                # ---- every level's sums, phase and weight (before the correction)
                 for lev in range(n_lev):
                     n_k = nsteps[lev]
-                    last = lev == n_lev - 1
+                    s32 = lv_s[lev]
+                    c32 = lv_c[lev]
+                    found = lv_found[lev]
+                    m2 = lv_m2[lev]
                     for mem in range(lev_first[lev], lev_first[lev + 1]):
                         st = stacks[mem]
                         first_mem = mem == lev_first[lev]
@@ -652,7 +651,7 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                         if first_mem:
                             for j in range(nj):
                                 found[j] = top[j] < max_value
-                            if full:
+                            if full and hdr_last and lev == n_lev - 1:
                                 for j in range(nj):
                                     expo[j] = e
                         else:  # a shorter exposure where the longer ones saturate
@@ -671,18 +670,19 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                                     s2[j] = ms2[j] if sel[j] else s2[j]
                                 for j in range(nj):
                                     c2[j] = mc2[j] if sel[j] else c2[j]
-                                for j in range(nj):
-                                    expo[j] = e if sel[j] else expo[j]
-                    _phase32(s32, c32, ph, m2, nj)
-                    corrected = False
-                    p = periods[lev]
+                                if hdr_last and lev == n_lev - 1:
+                                    for j in range(nj):
+                                        expo[j] = e if sel[j] else expo[j]
+                    _phase32(s32, c32, lv_ph[lev], m2, nj)
                     inv_n = 1.0 / n_k
                     thr = min_mod2[lev]
-                    xscale = length / (TWO_PI * p)
+                    xscale = length / (TWO_PI * periods[lev])
+                    wl = lv_w[lev]
                     if full:
-                        # weight 1 / sigma_x^2 from the quadrature level (sigma_I of the
-                        # phase): cos 2phi = (C^2 - S^2) / R^2, sin 2phi = -2 S C / R^2
-                        # (float32: the weights and sigma need no more)
+                        # weight 1 / sigma_x^2 (before the noise factor) from the
+                        # quadrature level (sigma_I of the phase): cos 2phi = (C^2 - S^2) /
+                        # R^2, sin 2phi = -2 S C / R^2 (float32: the weights and sigma
+                        # need no more); 0 where sigma would be 0
                         wk = _F32(2.0 * inv_n / (xscale * xscale))
                         inv_n32 = _F32(inv_n)
                         nc32 = _F32(noise_c)
@@ -697,41 +697,86 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                             cos2 = (b * b - a * a) * inv if pos else _ONE32
                             sin2 = (m_two * a * b) * inv if pos else _ZERO32
                             quad = (sa[j] - (cos2 * c2[j] - sin2 * s2[j])) * inv_n32
-                            dvar[j] = nc32 + ng32 * (quad if quad > _ZERO32 else _ZERO32)
-                        if has_table[lev]:
-                            # noise factor at the measured phase and the correction, from
-                            # the tables (scalar look-ups)
-                            _table_correct32(ph, tables[lev], nf_tables[lev], tscale, nj,
-                                             True, nfac)
-                            corrected = True
-                        elif has_series[lev]:
-                            # noise factor 1 - g' at the measured phase from the series
-                            # (vectorised), with the correction itself
-                            _series_correct32(ph, s32, c32, m2, ser_a[lev], ser_b[lev],
-                                              ser_c0[lev], ser_d[lev], ser_n[lev], ser_sc,
-                                              nj, True, ser_da[lev], ser_db[lev], nfac)
-                            corrected = True
-                        if corrected:
+                            d = nc32 + ng32 * (quad if quad > _ZERO32 else _ZERO32)
+                            w = wk * r2 / (d if d > _ZERO32 else _ONE32)
+                            wl[j] = w if d > _ZERO32 else _ZERO32
+                        if lev == n_lev - 1:
+                            o_bg = out_bg[r, j0:j1]
                             for j in range(nj):
-                                fs = nfac[j]
-                                dvar[j] = dvar[j] * fs * fs
-                        for j in range(nj):  # (0 where sigma would be 0)
-                            d = dvar[j]
-                            w = wk * m2[j] / (d if d > _ZERO32 else _ONE32)
-                            w32[j] = w if d > _ZERO32 else _ZERO32
+                                o_bg[j] = float(sa[j]) * inv_n
+                            if hdr_last:
+                                o_exp = out_exp[r, j0:j1]
+                                for j in range(nj):
+                                    o_exp[j] = expo[j]
                     else:
-                        wscale = _F32((2.0 * p * inv_n) ** 2)
+                        wscale = _F32((2.0 * periods[lev] * inv_n) ** 2)
                         for j in range(nj):
-                            w32[j] = wscale * m2[j]
-                    if corrected:
-                        pass
-                    elif has_table[lev]:
-                        _table_correct32(ph, tables[lev], nf_tables[lev], tscale, nj, False,
+                            wl[j] = wscale * m2[j]
+                    if lev == 0:
+                        for j in range(nj):
+                            pv[j] = found[j] & (m2[j] >= thr)
+                    else:
+                        for j in range(nj):
+                            pv[j] = pv[j] & found[j] & (m2[j] >= thr)
+                # ---- the series' terms this tile needs (see the docstring)
+                for j in range(nj):
+                    wden[j] = _ZERO32
+                for lev in range(n_lev):
+                    wl = lv_w[lev]
+                    lo = wbound[lev, 1]
+                    for j in range(nj):
+                        wden[j] += wl[j] * lo
+                for j in range(nj):  # (0 where the pixel cannot be valid)
+                    d = wden[j]
+                    use = pv[j] & (d > _ZERO32)
+                    wden[j] = _ONE32 / (d if use else _ONE32) if use else _ZERO32
+                for lev in range(n_lev):
+                    n_g[lev] = 0
+                    n_nf[lev] = 0
+                    if has_series[lev] and not has_table[lev]:
+                        n_max = (ser_n[lev] + SERIES_BLOCK - 1) // SERIES_BLOCK * SERIES_BLOCK
+                        share = float(_share_max(lv_w[lev], wden, w32, nj)) * float(
+                            wbound[lev, 0])
+                        share = min(share, 1.0)
+                        xs = length / (TWO_PI * periods[lev])
+                        ng = _terms(ser_tg[lev], share * xs, tol_x, n_max)
+                        if lev < n_lev - 1:
+                            ng = max(ng, _terms(ser_tg[lev], periods[lev + 1] / periods[lev],
+                                                tol_next, n_max))
+                        n_g[lev] = ng
+                        n_nf[lev] = _terms(ser_tn[lev], share, tol_nf, n_max)
+                # ---- per level: correction, unwrapping, combination
+                for lev in range(n_lev):
+                    n_k = nsteps[lev]
+                    last = lev == n_lev - 1
+                    s32 = lv_s[lev]
+                    c32 = lv_c[lev]
+                    ph = lv_ph[lev]
+                    m2 = lv_m2[lev]
+                    found = lv_found[lev]
+                    wl = lv_w[lev]
+                    p = periods[lev]
+                    inv_n = 1.0 / n_k
+                    thr = min_mod2[lev]
+                    xscale = length / (TWO_PI * p)
+                    corrected = False
+                    if has_table[lev]:
+                        # (scalar look-ups); with the noise factor at the measured phase
+                        _table_correct32(ph, tables[lev], nf_tables[lev], tscale, nj, full,
                                          nfac)
+                        corrected = full
                     elif has_series[lev]:
                         _series_correct32(ph, s32, c32, m2, ser_a[lev], ser_b[lev],
-                                          ser_c0[lev], ser_d[lev], ser_n[lev], ser_sc, nj,
-                                          False, ser_a[lev], ser_b[lev], nfac)
+                                          ser_c0[lev], ser_d[lev], n_g[lev], ser_sc, nj,
+                                          full, ser_da[lev], ser_db[lev], n_nf[lev], nfac)
+                        corrected = full
+                    if corrected:
+                        for j in range(nj):
+                            fs = nfac[j]
+                            w32[j] = wl[j] / (fs * fs)
+                    else:
+                        for j in range(nj):
+                            w32[j] = wl[j]
                     if lev == 0:
                         for j in range(nj):
                             q = ph[j] + cut32
@@ -800,12 +845,6 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                         bscale = _F32(2.0 * inv_n)
                         for j in range(nj):  # (float32 square root: 8 lanes)
                             o_mod[j] = float(bscale * math.sqrt(m2[j]))
-                        if full:
-                            o_bg = out_bg[r, j0:j1]
-                            o_exp = out_exp[r, j0:j1]
-                            for j in range(nj):
-                                o_bg[j] = float(sa[j]) * inv_n
-                                o_exp[j] = expo[j]
                 if full:
                     o_sigma = out_sigma[r, j0:j1]
                     o_sat = out_sat[r, j0:j1]

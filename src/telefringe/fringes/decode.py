@@ -87,7 +87,8 @@ class AxisCoordinates:
     low_modulation : bool, some group's modulation is below the threshold.
     shadow : bool, the projector does not light the pixel.
     order_reliable : bool, the unwrapping trusts the fringe order.
-    exposure : float64, exposure used for the finest group.
+    exposure : float64, exposure used for the finest group (a read-only view of one value
+        where that group has a single exposure).
     periods : tuple of int, the groups used (increasing).
     phase_errors : PhaseErrorFit or None, the nonlinearity correction applied.
     """

@@ -291,6 +291,38 @@ def _series_noise_ok(series, nf: np.ndarray) -> bool:
     return bool(np.max(np.abs((1.0 - deriv) / nf - 1.0)) <= NF_SERIES_TOL)
 
 
+#: the fused kernel cuts a coarse level's series where the dropped terms move the next
+#: level's order prediction (its phase times the period ratio) by at most this (rad): the
+#: residual check's outcome then differs from the exact path's only for residuals within
+#: this of its threshold (pi / 2)
+ORDER_TOL = 1e-5
+#: whether the fused kernel cuts the series per tile (False: every term, everywhere; for
+#: tests and benchmarks)
+SERIES_CUT = True
+
+
+def _series_tails(series, n_pad: int):
+    """Bounds of what the series (a, b, c0, d, ...) of :func:`_series` drops when cut after
+    its first n terms, n = 0..n_pad: of the correction g (rad: the amplitudes |a_t| +
+    |b_t| of the terms after n, plus SERIES_TAIL, what :func:`_series` dropped) and of the
+    noise factor 1 - g' (relative: the derivative's amplitudes t d (|a_t| + |b_t|), plus
+    SERIES_DERIV_TAIL, over the factor's least value); and the range [lo, hi] of the
+    weight's factor 1 / nf^2, from |g'| <= G1 = the derivative's amplitudes' sum (hi huge
+    where G1 >= 1). Returns (tg (n_pad + 1,), tn (n_pad + 1,), (hi, lo)) float64."""
+    a, b, _, d = series[:4]
+    mag = np.abs(np.asarray(a, dtype=np.float64)) + np.abs(np.asarray(b, dtype=np.float64))
+    dmag = d * np.arange(1, mag.size + 1) * mag
+    tg = np.full(n_pad + 1, SERIES_TAIL)
+    tn = np.full(n_pad + 1, SERIES_DERIV_TAIL)
+    # tail[n] = sum of the terms n + 1.. (the reversed cumulative sum)
+    tg[:mag.size] += np.cumsum(mag[::-1])[::-1]
+    tn[:mag.size] += np.cumsum(dmag[::-1])[::-1]
+    g1 = tn[0]
+    if g1 >= 1.0:
+        return tg, np.full(n_pad + 1, np.inf), (1e30, 1.0 / (1.0 + g1) ** 2)
+    return tg, tn / (1.0 - g1), (1.0 / (1.0 - g1) ** 2, 1.0 / (1.0 + g1) ** 2)
+
+
 _EXACT_WEIGHTS = (0.0, 0.5, -0.5, 1.0, -1.0)
 _MAX_MEMBERS = 16  # phase groups (exposures included) per axis in the fused kernel
 
@@ -309,9 +341,17 @@ def _weights(steps: int, offset: float):
     return c, s, c2, s2, exact
 
 
+def _tile_width(cols: int, tile: int) -> int:
+    """The kernel's tile width: ``cols`` split into the fewest equal tiles of at most
+    ``tile`` pixels."""
+    cols = max(int(cols), 1)
+    n = -(-cols // max(int(tile), 1))
+    return -(-cols // n)
+
+
 def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, min_mod: float,
            max_residual: float, models=None, full: bool, noise: NoiseModel | None = None,
-           dtype=np.float64, block_rows: int = 4, tile: int = 512) -> dict:
+           dtype=np.float64, block_rows: int = 4, tile: int = 2048) -> dict:
     """Run the fused kernel (telefringe._kernels.fused_ladder) over a hierarchical ladder.
 
     levels : list (sorted by periods, first one period) of lists of (stack, exposure), the
@@ -372,12 +412,21 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     has_series = np.zeros(n_lev, dtype=np.bool_)
     ser_da = np.zeros((n_lev, n_ser), dtype=np.float32)
     ser_db = np.zeros((n_lev, n_ser), dtype=np.float32)
+    # what the terms after the first n drop (n = 0..n_ser), and the range of the weight's
+    # factor 1 / nf^2 (see the kernel: it cuts the series per tile with these)
+    ser_tg = np.zeros((n_lev, n_ser + 1))
+    ser_tn = np.zeros((n_lev, n_ser + 1))
+    wbound = np.ones((n_lev, 2), dtype=np.float32)
     for i, (s, t) in enumerate(zip(series, table, strict=True)):
         if s is not None and not t:
             a, b, c0, d, _ = s
             ser_a[i, :a.size], ser_b[i, :b.size] = a, b
             ser_c0[i], ser_d[i], ser_n[i], has_series[i] = c0, d, a.size, True
             ser_da[i, :a.size], ser_db[i, :b.size] = _series_derivative(s)
+            ser_tg[i], ser_tn[i], wbound[i] = _series_tails(s, n_ser)
+        elif t:
+            nft = nf_tables[i].astype(np.float64)
+            wbound[i] = 1.0 / nft.min() ** 2, 1.0 / nft.max() ** 2
     nst = np.asarray(steps, dtype=np.int64)
     # thresholds on S^2 + C^2 (float32 in the kernel): the smallest float32 >= the exact
     # value, so that m2 >= thr32 exactly when m2 >= thr
@@ -393,8 +442,12 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
     names = (("sigma", np.float64), ("background", np.float64), ("exposure", np.float64),
              ("saturated", bool), ("low_modulation", bool), ("shadow", bool),
              ("order_reliable", bool))
+    # one exposure on the finest level: the exposure map is that constant, a read-only
+    # view (no plane of 8 bytes per pixel to write)
+    one_exposure = len(levels[-1]) == 1
     for name, t in names:
-        out[name] = _recycle.empty(shape if full else one, dtype=t)
+        small = not full or (name == "exposure" and one_exposure)
+        out[name] = _recycle.empty(one if small else shape, dtype=t)
     noise = noise if noise is not None else NoiseModel()
     if n_mem > _MAX_MEMBERS:
         raise DecodeError(f"the fused kernel takes at most {_MAX_MEMBERS} phase groups per "
@@ -409,12 +462,16 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
         c2w.astype(np.float32), ew,
         np.asarray(periods, dtype=np.float64), float(length), tables, nf_tables,
         np.asarray(table, dtype=np.bool_), ser_a, ser_b, ser_c0, ser_d, ser_n, has_series,
-        ser_da, ser_db,
+        ser_da, ser_db, ser_tg, ser_tn, wbound,
+        *((SERIES_TAIL * float(length) / (TWO_PI * float(periods[-1])), ORDER_TOL,
+           NF_SERIES_TOL) if SERIES_CUT else (0.0, 0.0, 0.0)),
         float(max_value), min_mod2,
         float(max_residual), bool(full), float(noise.read_noise ** 2 + noise.quantization ** 2),
-        float(noise.gain), int(block_rows), int(min(tile, max(shape[1], 1))),
+        float(noise.gain), int(block_rows), _tile_width(shape[1], tile),
         out["coordinate"], out["valid"], out["modulation"],
         *(out[name] for name, _ in names))
+    if full and one_exposure:
+        out["exposure"] = np.broadcast_to(np.float64(levels[-1][0][1]), shape)
     if dtype != np.float64:
         out["coordinate"] = out["coordinate"].astype(dtype)
     return out
