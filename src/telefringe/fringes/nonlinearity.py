@@ -780,7 +780,8 @@ class _Evaluation:
     the normal matrix ``ata`` (n_par, n_par), the right-hand side ``atb`` (n_par,) (the
     Gauss-Newton step is ``ata^-1 atb``), the weighted sum of squares ``chi2`` over the
     samples kept, their weighted RMS residual ``rms`` (rad) and count ``n_keep``, the
-    samples kept (P, n) bool and the true phases found (G, n) rad (a warm start)."""
+    samples kept (P, n) bool, the true phases found (G, n) rad (a warm start) and the
+    harmonics whose errors-in-variables bias is corrected (one bool array per group)."""
 
     coef: np.ndarray
     ata: np.ndarray
@@ -790,6 +791,7 @@ class _Evaluation:
     n_keep: int
     keep: np.ndarray
     unwrapped: np.ndarray
+    fix: list
 
 
 class _Ladder:
@@ -827,11 +829,13 @@ class _Ladder:
             self.sig_g[a], self.sig_g[b] = sig_a, sig_b
         self.start = None  # true phases of the last evaluation (a warm start for the next)
 
-    def evaluate(self, coef, reject, reject_now, keep=None):
+    def evaluate(self, coef, reject, reject_now, keep=None, fix=None):
         """The estimating equations at ``coef`` (an :class:`_Evaluation`). Samples beyond
         ``reject`` robust standard deviations of their pair are left out when
         ``reject_now``; ``keep`` (P, n) bool, when given, is the set of samples used
-        instead. Raises ValueError where a model is not invertible."""
+        instead, and ``fix`` (one bool array per group), when given, the harmonics whose
+        errors-in-variables bias is corrected (else chosen by their noise dilution).
+        Raises ValueError where a model is not invertible."""
         per, harm_arr, offs, pairs = self.per, self.harm_arr, self.offs, self.pairs
         n_groups, n, n_par, h_max = len(per), self.n, self.n_par, self.h_max
         models = _models(per, self.harm, offs, coef)
@@ -880,10 +884,11 @@ class _Ladder:
         # phase, tau^2 (the model's sigmas times the variance scale the residuals measure),
         # and the harmonics whose dilution m^2 tau^2 / 2 is small enough to correct
         s2 = chi2 / max(total_keep - n_par, 1)
-        fix = [0.5 * harm_arr[g].astype(float) ** 2
-               * (float(np.median(s2 * (self.sig_g[g] * gain[g]) ** 2))
-                  if g in self.sig_g else 0.0)
-               <= _EIV_DILUTION for g in range(n_groups)]
+        if fix is None:
+            fix = [0.5 * harm_arr[g].astype(float) ** 2
+                   * (float(np.median(s2 * (self.sig_g[g] * gain[g]) ** 2))
+                      if g in self.sig_g else 0.0)
+                   <= _EIV_DILUTION for g in range(n_groups)]
         # one compiled pass over every pair: the damped curvatures, the mean of the
         # inversion of a noisy phase taken out of the residual, the normal equations'
         # rows and Stein's sums (E[J^T res] = -tau^2 E[F'] per sample, taken out of J^T res)
@@ -912,13 +917,14 @@ class _Ladder:
             atb[offs[a]:offs[a + 1]] -= s2 * stein[j, 0, :na]
             atb[offs[b]:offs[b + 1]] -= s2 * stein[j, 1, :nb_]
         return _Evaluation(np.array(coef, dtype=np.float64), ata, atb, chi2, rms, total_keep,
-                           keeps, unw)
+                           keeps, unw, fix)
 
 
 def _newton_matrix(lad, ev, h):
     """Newton's matrix ``-dU/dc`` (n_par, n_par) of the estimating equations ``U`` (the
     right-hand side ``atb`` of :meth:`_Ladder.evaluate`) at ``ev.coef``, by forward
-    differences of steps ``h`` (n_par,) with the samples of ``ev`` held: every dependence
+    differences of steps ``h`` (n_par,) with the samples of ``ev`` and its choice of the
+    harmonics whose bias is corrected held (both are discrete): every dependence
     on the coefficients (the phases' inversion, gains, weights, the errors-in-variables
     corrections), which Gauss-Newton's ``J^T W J`` leaves out but for the first."""
     n_par = ev.coef.size
@@ -926,7 +932,8 @@ def _newton_matrix(lad, ev, h):
     for i in range(n_par):
         c = ev.coef.copy()
         c[i] += h[i]
-        out[:, i] = -(lad.evaluate(c, 0.0, False, keep=ev.keep).atb - ev.atb) / h[i]
+        out[:, i] = -(lad.evaluate(c, 0.0, False, keep=ev.keep, fix=ev.fix).atb
+                      - ev.atb) / h[i]
     return out
 
 
@@ -941,7 +948,7 @@ def _accept_newton(lad, back, jac, full, lam, per, harm, offs):
     coef = back[0] + lam * back[3]
     if not all(m.invertible for m in _models(per, harm, offs, coef)):
         return None
-    trial = lad.evaluate(coef, 0.0, False, keep=back[1].keep)
+    trial = lad.evaluate(coef, 0.0, False, keep=back[1].keep, fix=back[1].fix)
     bar = float(np.max(np.abs(np.linalg.solve(jac, trial.atb)) / back[2]))
     return trial if bar <= (1.0 - 0.25 * lam) * full else None
 
@@ -982,6 +989,7 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
     budget = max_it - 1  # steps allowed (Newton's method gets max_it - 1 of its own)
     jac = None  # Newton's matrix -dU/dc once the iteration is switched to it, else None
     lam, full, back = 1.0, 0.0, None  # Newton's damping, its full step's size, way back
+    allow = True  # Newton's method may be switched to
     ev = lad.evaluate(coef, reject, reject_first)
     while True:
         ata, atb, chi2, rms, total_keep = ev.ata, ev.atb, ev.chi2, ev.rms, ev.n_keep
@@ -999,7 +1007,7 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
             break
         step = np.linalg.solve(ata + ridge * np.eye(n_par), atb)
         size = float(np.max(np.abs(step) / se))
-        if (jac is None and last > 0 and size > _SLOW_CONTRACTION * last
+        if (allow and jac is None and last > 0 and size > _SLOW_CONTRACTION * last
                 and size > _WARN_LAST_STEP):
             # Gauss-Newton contracts too slowly or not at all: on to Newton's method
             jac, budget = np.empty(0), taken + max_it - 1
@@ -1057,12 +1065,12 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
                 coef = back[0] + lam * back[3]
                 trial = _accept_newton(lad, back, jac, full, lam, per, harm, offs)
             if trial is None:
-                coef = back[0]
-                if notes is not None:
-                    notes.append(f"Newton's method stopped after {taken} steps: no damping "
-                                 "of its step reduced the next one "
-                                 + (_NOT_CONVERGED if final else "(a later pass goes on)"))
-                break
+                # no damping reduced the next step (e.g. a far start on a nearly singular
+                # problem): back to the old iterate and on with Gauss-Newton (the out-of-
+                # steps test below still says whether the result converged)
+                coef, jac, allow = back[0], None, False
+                ev = back[1]
+                continue
             if q > _MAX_CONTRACTION:  # slow: Newton's matrix anew, by differences
                 jac = np.empty(0)
             else:
