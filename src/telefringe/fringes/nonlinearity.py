@@ -978,7 +978,26 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
     noise dilution ``m^2 tau^2 / 2`` (median over the samples) exceeds ``_EIV_DILUTION``
     are left uncorrected: there the correction's terms, which grow like ``m^2 tau^2``
     times the coefficients, would feed back and amplify the noise (measured: sigma_phi
-    = 0.05 rad, m = 24 drove the finest group's 24th harmonic to 0.04 rad)."""
+    = 0.05 rad, m = 24 drove the finest group's 24th harmonic to 0.04 rad).
+
+    Newton's method: those corrections depend on the coefficients (through the curvature
+    e'', the gains, the phases), which the Gauss-Newton matrix ``J^T W J`` leaves out. On
+    an even coverage that costs a little speed; on a narrow one the harmonics of the
+    coarsest group are nearly collinear, ``J^T W J`` is small along their combination and
+    the left-out terms are not: the iteration's map can then have an eigenvalue beyond
+    -1 (measured -1.0 on a 200 px BGA window of the paper rig whose 1-period phase covers
+    17 % of its circle: a 2-cycle between models 78 standard errors apart, whatever the
+    number of steps). Where a Gauss-Newton step is larger than ``_SLOW_CONTRACTION``
+    times the previous one (and above ``_WARN_LAST_STEP`` standard errors), the iteration
+    goes on with Newton's method on the same estimating equations (same fixed point):
+    the matrix ``-dU/dc`` by forward differences (:func:`_newton_matrix`; the samples and
+    the corrected harmonics held), then Broyden's updates while the steps shrink by
+    ``_MAX_CONTRACTION`` or more, anew by differences otherwise, each step damped until
+    it passes the natural monotonicity test (:func:`_accept_newton`); a step no damping
+    accepts returns to Gauss-Newton. Newton's method gets ``max_it - 1`` steps of its own.
+    On the BGA window: 4 Newton steps to 0.001 standard errors; it costs ~20 evaluations
+    of the equations per matrix (one per coefficient), ~30 s of CPU on that window against
+    ~2 s, only where Gauss-Newton stalls (never on the full scans measured)."""
     n_par = int(offs[-1])
     lad = _Ladder(samp, per, harm, harm_arr, offs, pairs)
     rms = chi2 = 0.0
@@ -1049,10 +1068,6 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         size = float(np.max(np.abs(step) / se))
         q = size / last if last > 0 else np.inf
         last = size
-        if _TRACE is not None:
-            _TRACE.append(dict(it=taken, final=final, n=lad.n, harm=[list(h) for h in harm],
-                               coef=coef.copy(), step=step.copy(), se=se.copy(), size=size,
-                               chi2=chi2, keep=total_keep, newton=jac is not None, lam=lam))
         if (np.max(np.abs(step)) < tol or size <= _REMAINING
                 or (q <= _MAX_CONTRACTION and q / (1.0 - q) * size <= _REMAINING)):
             break
@@ -1088,9 +1103,6 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
 
 #: an empty array: no absolute phases (kernels take arrays, not None)
 _NONE = np.empty(0)
-
-#: (debugging) a list collecting each Gauss-Newton step, or None
-_TRACE = None
 
 
 def _dense_ladder(models):
