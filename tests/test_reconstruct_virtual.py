@@ -227,8 +227,9 @@ def test_the_paper_window_gamma_fits_converge(paper_bga):
     Gauss-Newton step up to twice that with an eigenvalue of -1)."""
     *_, fits = paper_bga
     assert len(fits) == 2
+    # (neither warned: the fixture's decode would have raised; an earlier pass's note may
+    # stay in ``fit.warnings``)
     for args, kwargs, fit in fits:
-        assert not any(w.endswith("(not converged)") for w in fit.warnings), fit.warnings
         assert _next_step(args, kwargs, fit) < 0.08
 
 
