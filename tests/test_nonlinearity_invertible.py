@@ -5,7 +5,6 @@ mapping between sample points is refused."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from telefringe.fringes.nonlinearity import PhaseErrorModel
 
@@ -56,8 +55,8 @@ def test_a_three_step_scan_learns_its_gamma_without_a_traceback(tmp_path):
     (halved, reported) instead of raising inside Gauss-Newton. Plate of the cropped fast
     rig (a bare rig, so residuals include its nominal geometry): reconstructed, most
     pixels valid, and the plane-fit residual over sigma_z within 2x what the code achieves
-    (RMS 5.9; 4 steps give 1.7 on the same scene, the 3-step phase keeps more of the
-    gamma's error)."""
+    (RMS 5.8, 5.9 when the fit stopped short of converging; 4 steps give 1.7 on the same
+    scene, the 3-step phase keeps more of the gamma's error)."""
     import json
 
     from telefringe.cli import main
@@ -73,15 +72,16 @@ def test_a_three_step_scan_learns_its_gamma_without_a_traceback(tmp_path):
     scan, _ = render_scan(vr, plate_at_z(0.0), default_groups(vr, steps=3), seed=3)
     write_scan(tmp_path / "three", scan)
     out = tmp_path / "out"
-    # (this tiny plate's fit runs out of Gauss-Newton steps: said, no longer silent)
-    with pytest.warns(RuntimeWarning, match=r"Gauss-Newton took its 5 steps .*not converged"):
-        assert main(["reconstruct", str(tmp_path / "three"), "--rig",
-                     str(tmp_path / "rig.json"), "-o", str(out), "--no-ply",
-                     "--noise-model", "default"]) == 0
+    # (this tiny plate's fit ran out of Gauss-Newton steps and warned; Newton's method now
+    # takes over where Gauss-Newton contracts slowly, and it converges: a warning would be
+    # an error here)
+    assert main(["reconstruct", str(tmp_path / "three"), "--rig",
+                 str(tmp_path / "rig.json"), "-o", str(out), "--no-ply",
+                 "--noise-model", "default"]) == 0
     pts = np.load(out / "points.npz")
     xyz, sz = pts["xyz"].reshape(-1, 3), pts["sigma_z"].ravel()
     ok = np.isfinite(xyz).all(axis=1) & np.isfinite(sz)
-    assert ok.mean() > 0.5  # 0.69 (6 % without the gamma correction)
+    assert ok.mean() > 0.5  # 0.74 (0.69 unconverged; 6 % without the gamma correction)
     a = np.c_[xyz[ok, :2], np.ones(ok.sum())]
     coef, *_ = np.linalg.lstsq(a, xyz[ok, 2], rcond=None)
     z = (xyz[ok, 2] - a @ coef) / sz[ok]
