@@ -66,6 +66,7 @@ from __future__ import annotations
 import argparse
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -117,6 +118,14 @@ def _shuffled(quiet, noisy, rng) -> _Maps:
                  np.where(m, noisy.sigma_v_p, np.nan))
 
 
+#: modes that need the noise-free render, and the scans themselves (not cacheable)
+_NEEDS_QUIET = {"true", "quiet-image", "white", "white-1", "white-2", "quiet",
+                "quiet-fixed-s2", "shuffled"}
+_NEEDS_SCANS = {"shared", "true", "none"}
+_CACHEABLE = {"learned", "fixed-s2", "shared-s2", "split-s2", "no-reject", "quiet-image",
+              "white", "white-1", "white-2", "quiet", "quiet-fixed-s2", "shuffled"}
+
+
 #: the scale factor k of the last sandwich covariance (see ``_record_scale``)
 _SCALE: list = []
 
@@ -152,19 +161,63 @@ def _s2_true(vrig) -> float:
     return 1.0 / 12.0 + float(np.sum(k * x * x))
 
 
+def _load_or_decode(args, vrig, sph, seed: int, geoms: dict):
+    """(the learned decode of each camera, measure_sphere's image options, the scans or
+    None) of the noise seed ``seed``: from ``args.cache`` when there (no scans), else
+    rendered (and cached)."""
+    from telefringe.fringes.decode import decode
+    from telefringe.fringes.images import scan_radiance
+    from telefringe.metrology.spheres import finest_fringe_periods
+    from telefringe.simulate.anyrig import scan_scene
+
+    names = vrig.rig.camera_names
+    path = (None if args.cache is None
+            else args.cache / f"stereo_b{args.bin}_s{seed:03d}.npz")
+    if path is not None and path.exists():
+        z = np.load(path)
+        learned = {c: _Maps(*(z[f"{c}_{a}"] for a in _Maps.__dataclass_fields__))
+                   for c in names}
+        return learned, {"rig": vrig.rig, "image": z[f"{names[0]}_image"],
+                         "image_2": z[f"{names[1]}_image"],
+                         "fringe_periods": tuple(float(v) for v in z["periods"])}, None
+    scans, _ = scan_scene(vrig, sph, seed=seed, geometries=geoms)
+    kw = {"rig": vrig.rig, "image": scan_radiance(scans[names[0]]),
+          "image_2": scan_radiance(scans[names[1]]),
+          "fringe_periods": finest_fringe_periods(scans[names[0]].manifest)}
+    noise = vrig.photometry.noise_model()
+    learned = {c: decode(s, noise=noise) for c, s in scans.items()}
+    if path is not None:
+        arrays = {f"{c}_{a}": np.asarray(getattr(learned[c], a))
+                  for c in names for a in _Maps.__dataclass_fields__}
+        np.savez_compressed(path, **arrays, periods=np.asarray(kw["fringe_periods"]),
+                            **{f"{names[0]}_image": kw["image"],
+                               f"{names[1]}_image": kw["image_2"]})
+        learned = {c: _Maps(*(arrays[f"{c}_{a}"] for a in _Maps.__dataclass_fields__))
+                   for c in names}  # as a later run reads them
+    return learned, kw, scans
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bin", type=int, default=4)
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--first", type=int, default=20)
     ap.add_argument("--modes", default="learned,shared,true,none")
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="keep each seed's decoded maps and images here (npz) and reuse "
+                         "them: only the modes that take the learned decode then")
+    ap.add_argument("--synthetic", action="store_true",
+                    help="no render per seed: the noise-free render's maps plus white "
+                         "noise of the decoded sigmas of the seed --first, and its "
+                         "brightness images plus white noise of the camera's noise model "
+                         "(over the scan's images)")
     args = ap.parse_args()
     import functools
 
     from telefringe.fringes.decode import decode
     from telefringe.fringes.images import scan_radiance
     from telefringe.metrology import spheres
-    from telefringe.metrology.spheres import finest_fringe_periods, measure_sphere
+    from telefringe.metrology.spheres import measure_sphere
     from telefringe.reconstruction.stereo import match_noise, match_stereo
     from telefringe.simulate.anyrig import scan_scene
     from telefringe.simulate.presets import bin_camera_any, get_preset
@@ -178,21 +231,49 @@ def main() -> None:
     sph = default_sphere()
     truth = np.r_[sph.center, sph.radius]
     geoms: dict = {}
-    quiet = vrig.with_photometry(full_well_e=1e12, read_noise_e=0.0, bit_depth=16)
-    scans0, _ = scan_scene(quiet, sph, seed=0)
-    decoded0 = {c: decode(s, noise=noise) for c, s in scans0.items()}
-    true_models = {c: _models(d) for c, d in decoded0.items()}
-    images0 = {c: scan_radiance(s) for c, s in scans0.items()}
+    if args.cache is not None:
+        if set(modes) & _NEEDS_SCANS:
+            raise SystemExit(f"--cache: only the modes {sorted(_CACHEABLE)}")
+        args.cache.mkdir(parents=True, exist_ok=True)
+    quiet_path = None if args.cache is None else args.cache / f"stereo_b{args.bin}_quiet.npz"
+    if quiet_path is not None and quiet_path.exists() and "true" not in modes:
+        z = np.load(quiet_path)
+        decoded0 = {c: _Maps(*(z[f"{c}_{a}"] for a in _Maps.__dataclass_fields__))
+                    for c in names}
+        images0 = {c: z[f"{c}_image"] for c in names}
+        n_images = int(z["n_images"])
+    elif set(modes) & _NEEDS_QUIET or args.synthetic:
+        quiet = vrig.with_photometry(full_well_e=1e12, read_noise_e=0.0, bit_depth=16)
+        scans0, _ = scan_scene(quiet, sph, seed=0)
+        decoded0 = {c: decode(s, noise=noise) for c, s in scans0.items()}
+        true_models = {c: _models(d) for c, d in decoded0.items()}
+        # on the noisy scans' scale (8-bit DN per unit exposure)
+        images0 = {c: scan_radiance(s) * (vrig.photometry.max_value
+                                          / quiet.photometry.max_value)
+                   for c, s in scans0.items()}
+        n_images = sum(st.shape[0] for st in scans0[names[0]].stacks)
+        if quiet_path is not None:
+            np.savez_compressed(quiet_path, n_images=n_images, **{
+                f"{c}_{a}": np.asarray(getattr(decoded0[c], a))
+                for c in names for a in _Maps.__dataclass_fields__},
+                **{f"{c}_image": images0[c] for c in names})
+    if args.synthetic:  # the reference scan's decoded sigmas
+        ref = _load_or_decode(args, vrig, sph, args.first, geoms)[0]
     z_all = {m: [] for m in modes}
     e_all = {m: [] for m in modes}
     t0, c0 = time.perf_counter(), time.process_time()
     for k in range(args.seeds):
         seed = args.first + k
-        scans, _ = scan_scene(vrig, sph, seed=seed, geometries=geoms)
-        kw = {"rig": vrig.rig, "image": scan_radiance(scans[names[0]]),
-              "image_2": scan_radiance(scans[names[1]]),
-              "fringe_periods": finest_fringe_periods(scans[names[0]].manifest)}
-        learned = {c: decode(s, noise=noise) for c, s in scans.items()}
+        if args.synthetic:
+            rng = np.random.default_rng(3000 + seed)
+            learned = {c: _white(decoded0[c], ref[c], rng) for c in names}
+            img = {c: images0[c] + np.sqrt(noise.variance(images0[c]) / n_images)
+                   * rng.standard_normal(images0[c].shape) for c in names}
+            kw = {"rig": vrig.rig, "image": img[names[0]], "image_2": img[names[1]],
+                  "fringe_periods": _load_or_decode(args, vrig, sph, args.first,
+                                                    geoms)[1]["fringe_periods"]}
+        else:
+            learned, kw, scans = _load_or_decode(args, vrig, sph, seed, geoms)
         for mode in modes:
             if mode == "learned":
                 coords = learned
