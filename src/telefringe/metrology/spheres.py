@@ -1110,21 +1110,28 @@ def _fit_sphere_spread(p, d, T, x0, free: bool, max_iter: int = 50, *, sens=None
     npar = x.size if free else 4
     eiv = free and sens is not None and noise_var is not None
     K = np.zeros((npar, npar))
+    # the corrected equations' slope leaves out the correction's own small slope by the
+    # sphere: their steps shrink linearly, not quadratically; a few more steps once
+    # below the tolerance put the result at the fixed point to rounding
+    polish = 0
     for _ in range(max_iter):
         f, J, nn = _design(p, d, T, x, free)
-        grad = J.T @ f
-        N = J.T @ J
         if eiv:
             bias, K[4:, 4:] = _eiv_correction(T, sens, noise_var, x,
                                               np.sum(nn * d, axis=1))
+            grad = J.T @ f
             grad[4:] -= bias
-            N = N - K
-        sc = np.sqrt(np.abs(np.diag(N)))  # scaled for the conditioning (mm, px^2)
-        sc[sc == 0] = 1.0
-        step = -np.linalg.solve(N / np.outer(sc, sc), grad / sc) / sc
+            N = J.T @ J - K
+            sc = np.sqrt(np.abs(np.diag(N)))  # scaled for the conditioning (mm, px^2)
+            sc[sc == 0] = 1.0
+            step = -np.linalg.solve(N / np.outer(sc, sc), grad / sc) / sc
+        else:
+            step = np.linalg.lstsq(J, -f, rcond=None)[0]
         x[:npar] += step
         if np.all(np.abs(step[:4]) < 1e-12 * max(1.0, abs(x[3]))):
-            break
+            polish += 1
+            if not eiv or polish > 3:
+                break
     f, J, nn = _design(p, d, T, x, free)
     if eiv:
         _, K[4:, 4:] = _eiv_correction(T, sens, noise_var, x, np.sum(nn * d, axis=1))
