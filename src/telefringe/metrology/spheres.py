@@ -527,7 +527,9 @@ def _log_noise(img):
         A = X[keep] * w[keep, None]
         sc = np.linalg.norm(A, axis=0)
         sc[sc == 0] = 1.0
-        theta = nnls(A / sc, v[keep] * w[keep])[0] / sc
+        # the same non-negative least squares on the 3 x 3 factor of the system
+        Q, R = np.linalg.qr(A / sc)
+        theta = nnls(R, Q.T @ (v[keep] * w[keep]))[0] / sc
         model = X @ theta
         if not np.any(model[use] > 0):
             return np.where(np.isfinite(L), 0.0, np.nan)
