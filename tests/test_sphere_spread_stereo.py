@@ -92,11 +92,14 @@ def test_interpolation_term_matches_exact_phase_maps(stereo_sphere):
 def test_stereo_sphere_through_the_spread_model_is_unbiased(stereo_sphere):
     """The rendered stereo sphere with the true rig: the plain fit's radius and centre z
     are off by many sigma (seed 7: radius +8.4 um, centre z -10.7 um, z +15.8 and
-    -16.0); through the two cameras' point-spread model within 3 sigma (measured radius
-    +1.2 um, z 0.9; centre z -2.2, -0.8, -0.8), the shared variance (the data did not
-    tell the cameras apart: 0.23 +- 0.05 px^2) within 3 sigma of the renderer's 0.298;
-    given that variance, within 3 sigma too; and a variance per camera (imposed: 0.28 +-
-    0.08 and 0.17 +- 0.09) within 3 sigma as well."""
+    -16.0); through the two cameras' point-spread model within 3 sigma (the default, a
+    variance per camera: measured radius +1.08 um, z 0.80; centre z 0.25, -0.93, -0.68;
+    0.27 +- 0.09 and 0.19 +- 0.09 px^2, each within 3 sigma of the renderer's 0.298);
+    given that variance, within 3 sigma too; one variance for both (psf_shared: 0.256 +-
+    0.057 px^2) within 3 sigma as well (centre z -2.23, -0.84, -0.39, radius 0.52), with
+    a centre x sigma 6 times smaller (0.35 for 2.1 um: the cameras' spreads differ along
+    their baseline, which moves the centre along it). psf_shared=None (the data deciding,
+    before) is refused."""
     from telefringe.fringes.images import scan_radiance
     from telefringe.metrology.spheres import finest_fringe_periods
     from telefringe.reconstruction.stereo import triangulate_stereo
@@ -126,20 +129,25 @@ def test_stereo_sphere_through_the_spread_model_is_unbiased(stereo_sphere):
     assert sp.cameras == 2 and sp.estimated and sp.brightness
     assert np.all(np.abs(z) <= 3.0), z
     assert m.spread_terms.shape == cloud.shape + (5,)
-    if sp.shared:  # the data did not tell the cameras apart
-        assert sp.variance_2_px2 == sp.variance_px2
-        assert abs(sp.variance_px2 - s2) <= 3.0 * sp.sigma_variance_px2
+    # by default one variance per camera, whatever the data
+    assert not sp.shared and sp.variance_2_px2 != sp.variance_px2
+    for v, e in ((sp.variance_px2, sp.sigma_variance_px2),
+                 (sp.variance_2_px2, sp.sigma_variance_2_px2)):
+        assert abs(v - s2) <= 3.0 * e, (v, e, s2)
     g = measure_sphere(cloud, psf_variance=s2, **kw)
     assert not g.spread.estimated and g.sphere.sigma_radius < f.sigma_radius
     assert np.all(np.abs(z_of(g.sphere)) <= 3.0), z_of(g.sphere)
-    apart = measure_sphere(cloud, psf_shared=False, **kw)
-    sa = apart.spread
-    print("per camera:", z_of(apart.sphere), sa)
-    assert not sa.shared and sa.variance_2_px2 != sa.variance_px2
-    assert np.all(np.abs(z_of(apart.sphere)) <= 3.0), z_of(apart.sphere)
-    for v, e in ((sa.variance_px2, sa.sigma_variance_px2),
-                 (sa.variance_2_px2, sa.sigma_variance_2_px2)):
-        assert abs(v - s2) <= 3.0 * e, (v, e, s2)
+    one = measure_sphere(cloud, psf_shared=True, **kw)
+    so = one.spread
+    print("shared:", z_of(one.sphere), so)
+    assert so.shared and so.variance_2_px2 == so.variance_px2
+    assert np.all(np.abs(z_of(one.sphere)) <= 3.0), z_of(one.sphere)
+    assert abs(so.variance_px2 - s2) <= 3.0 * so.sigma_variance_px2
+    # the two cameras' spreads differ along the baseline (x): one each leaves the
+    # centre's x to the data, one shared pins it
+    assert f.sigma_centre[0] > 2.0 * one.sphere.sigma_centre[0]
+    with pytest.raises(MetrologyError, match="psf_shared"):
+        measure_sphere(cloud, psf_shared=None, **kw)
 
 
 def test_stereo_spread_model_arguments(stereo_sphere):
