@@ -28,15 +28,18 @@ median of ``--runs`` runs after a warm-up:
 
 What bounds each figure:
 
-- triangulation: memory traffic. Per pixel the u-only kernel reads the line offsets a, b,
-  u_p, sigma_u_p and the mask (33 B) and writes x, y, z, sigma and the flags and mask
-  bytes (34 B): ~88 MB per 1.3 Mpx scan. The "memory floor" line copies the same number
-  of bytes (a (n, 4) float64 array into another) for scale; the arithmetic (two
-  divisions, ~150 flops per pixel, vectorised, 2 threads) costs about as much again.
-  The per-rig set-up (undistorting every camera pixel) is paid once per rig and shape.
+- triangulation: its arithmetic (two divisions, ~150 flops per pixel, vectorised). Per
+  pixel the u-only kernel reads the line offsets a, b, u_p, sigma_u_p and the mask
+  (33 B) and writes x, y, z, sigma and the flags and mask bytes (34 B): ~88 MB per
+  1.3 Mpx scan, but a slice that stays in cache takes the same CPU time per pixel as the
+  whole frame (benchmarks/triangulate_identity.py). The "memory floor" line copies the
+  same number of bytes (a (n, 4) float64 array into another) for scale. The per-rig
+  set-up (undistorting every camera pixel) is paid once per rig and shape.
 - decode + triangulate: decoding (telefringe.fringes.decode: wrapped phase, unwrapping and, by
-  default, fitting and removing the projector's gamma from the fringes); triangulation is
-  a few percent of it.
+  default, fitting and removing the projector's gamma from the fringes; with the rig's
+  model, its Fourier series, cut per tile of pixels to what the result needs); writing
+  the decoder's output planes (u_p, sigma, modulation, background: 8 bytes each per
+  pixel, and the flags) costs about 2 ms CPU per plane per 1.3 Mpx.
 - cold start: Python + numpy + typer imports (rich only when it prints: not with -q),
   importing numba (~0.25 s CPU; the command loads the cached kernels without numba's
   registries of implementations, which would import scipy.linalg: -0.1 to -0.3 s), the
