@@ -173,3 +173,20 @@ def step_hits(cam, shape, h=1.5):
                          np.where((z_wall >= 0) & (z_wall <= h), s_wall, np.inf)])
     s = cand.min(axis=0)
     return o + s[..., None] * d
+
+
+def noisy_coords(u, v, s, rng=None):
+    """Coords of (rows, cols) projector coordinates u, v (px; NaN: no hit), their sigma s
+    (px) everywhere, with Gaussian noise of that sigma added where ``rng`` is given."""
+    shape = u.shape
+
+    def noisy(a):
+        return a if rng is None else a + rng.normal(0, s, shape)
+
+    mask = np.isfinite(u) & np.isfinite(v)
+    return Coords(noisy(u), noisy(v), mask, np.full(shape, s), np.full(shape, s))
+
+
+def var_ratio_tol(n_runs, k=3.0):
+    """k sigma of the ratio of a sample variance of n_runs Gaussian draws to the true."""
+    return k * np.sqrt(2.0 / (n_runs - 1))

@@ -13,7 +13,9 @@ import json
 
 import numpy as np
 import pytest
-from anyrig_rigs import Coords, stereo_rig_of
+from anyrig_rigs import noisy_coords as _coords
+from anyrig_rigs import stereo_rig_of
+from anyrig_rigs import var_ratio_tol as _var_ratio_tol
 
 from telefringe.metrology import MetrologyError
 from telefringe.metrology.acceptance import (
@@ -26,21 +28,6 @@ from telefringe.metrology.acceptance.fits import PointNoise, correlated_covarian
 from telefringe.reconstruction.stereo import match_noise, match_stereo
 
 _S1, _S2 = 0.02, 0.05  # projector px: the first and the second camera's decoded sigma
-
-
-def _coords(u, v, s, rng=None):
-    shape = u.shape
-
-    def noisy(a):
-        return a if rng is None else a + rng.normal(0, s, shape)
-
-    mask = np.isfinite(u) & np.isfinite(v)
-    return Coords(noisy(u), noisy(v), mask, np.full(shape, s), np.full(shape, s))
-
-
-def _var_ratio_tol(n_runs, k=3.0):
-    """k sigma of the ratio of a sample variance of n_runs Gaussian draws to the true."""
-    return k * np.sqrt(2.0 / (n_runs - 1))
 
 
 def _first_hit(o, d, c, r):
