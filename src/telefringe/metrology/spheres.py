@@ -1087,7 +1087,9 @@ def spread_design(measurement, points, directions):
     normal matrix's part from the brightness image's noise (``measurement.spread_noise``).
     Without ``K`` the linearisation is the plain least squares', another estimator: on
     the image with 0.6 % noise of tests/test_metrology_spheres.py its radius response
-    is off by about a tenth (see the test of this function there).
+    is off by 39 % (its s^2 response 22 %; see the test of this function there), and on
+    the rendered stereo sphere (tests/test_sphere_spread_stereo.py, seed 7) the plain
+    influence rows of (cx, cy, cz, r) differ from the corrected by 15, 0.2, 8 and 8 %.
 
     Parameters
     ----------
