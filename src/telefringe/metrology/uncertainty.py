@@ -371,6 +371,7 @@ def sphere_uncertainty(measurement, cloud, calibration, *, weight_v=None):
         r = np.linalg.norm(d, axis=1)
         uvec = d / r[:, None]
         a = np.column_stack([-uvec, -np.ones(pts.shape[0])])  # d residual / d (c, R)
+        k_noise = 0.0
     else:
         # the fit through the point-spread model: its residuals' design, with the spread's
         # variance a parameter when it was estimated (the points move the estimate too)
@@ -378,8 +379,9 @@ def sphere_uncertainty(measurement, cloud, calibration, *, weight_v=None):
 
         dirs = cloud.directions
         dv = np.broadcast_to(dirs, pts.shape) if dirs.ndim == 1 else dirs[sel]
-        a, uvec = spread_design(m, pts, dv)
-    Ninv = np.linalg.inv(a.T @ a)
+        # k_noise: the corrected normal equations' noise part (spheres._eiv_correction)
+        a, uvec, k_noise = spread_design(m, pts, dv)
+    Ninv = np.linalg.inv(a.T @ a - k_noise)
     G = (-(a @ Ninv.T)[:, :, None] * uvec[:, None, :])[:, :4]  # (n, 4, 3): (c, R)
     J = sum_point_jacobian(calibration, pts, G, weight_v=wv)
     u = np.sqrt(np.sum((J @ L) ** 2, axis=1))
