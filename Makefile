@@ -20,7 +20,7 @@ demo: $(STAMP)
 test: $(STAMP) system-packages
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
 # Debian packages the capture-driver tests need: the Aravis library (GigE Vision tests
 # against its fake camera), Xvfb + xrandr + Mesa's software GL (the window projector).
