@@ -130,6 +130,22 @@ def _spread_scene(size=64):
             on.reshape(size, size), image)
 
 
+def _spread_shift_map(rig, c, r, d, on, image, s2, periods):
+    """The spread model's shift of the scene's depths (s2 px^2, fringe periods px) at its
+    sphere pixels ``on``: (rows, cols, a1, ok, shift (rows, cols) mm, 0 elsewhere)."""
+    from telefringe.metrology.spheres import _log_gradients, spread_shift
+
+    gu, gv = _log_gradients(image)
+    rows, cols = np.nonzero(on)
+    a1, a2, ok = spread_shift(rig.camera, rig.projector, c, r,
+                              np.stack([cols, rows], 1).astype(float), d[on],
+                              grad_ln_i=np.stack([gu[on], gv[on]], 1),
+                              fringe_periods=periods)
+    shift = np.zeros(on.shape)
+    shift[rows, cols] = np.where(ok, s2 * a1 + s2 * s2 * a2, 0.0)
+    return rows, cols, a1, ok, shift
+
+
 def test_spread_variance_not_shrunk_by_the_image_noise():
     """The point-spread model takes the brightness image's log-gradient b, whose noise
     (errors in the variables) shrank the fitted s^2 and biased the sphere: points
@@ -143,7 +159,7 @@ def test_spread_variance_not_shrunk_by_the_image_noise():
     0.0076 observed; radius 0.068 and 0.052 um). Tolerances: 2x the achieved s^2 bias,
     3 standard errors of the radius, the scatter within 3 sampling sigmas of its
     prediction."""
-    from telefringe.metrology.spheres import _log_gradients, _log_noise, spread_shift
+    from telefringe.metrology.spheres import _log_noise
     from telefringe.reconstruction.cloud import PointCloud
 
     rig, c, r, X, d, on, image = _spread_scene()
@@ -152,14 +168,7 @@ def test_spread_variance_not_shrunk_by_the_image_noise():
     from scipy import ndimage
 
     inner = ndimage.binary_erosion(on, iterations=3) & (image > 0.5 * image.max())
-    gu, gv = _log_gradients(image)
-    rows, cols = np.nonzero(on)
-    a1, a2, ok = spread_shift(rig.camera, rig.projector, c, r,
-                              np.stack([cols, rows], 1).astype(float), d[on],
-                              grad_ln_i=np.stack([gu[on], gv[on]], 1),
-                              fringe_periods=periods)
-    shift = np.zeros(on.shape)
-    shift[rows, cols] = np.where(ok, s2 * a1 + s2 * s2 * a2, 0.0)
+    rows, cols, a1, ok, shift = _spread_shift_map(rig, c, r, d, on, image, s2, periods)
     rng = np.random.default_rng(5)
     est, ref, sig, dr, sig_r, noise_ratio = [], [], [], [], [], []
     for _ in range(n):
@@ -216,19 +225,13 @@ def test_spread_design_linearises_the_corrected_fit():
     plain one is off by 39 % and 22 % (K is 0.7 % of the variance's J' J, but s^2 is
     told by the small part of the shift the sphere cannot absorb). Tolerance: 1 % of
     each response (2x the achieved 0.5 %); the plain design must fail it 10 times over."""
-    from telefringe.metrology.spheres import _log_gradients, spread_design, spread_shift
+    from telefringe.metrology.spheres import spread_design
     from telefringe.reconstruction.cloud import PointCloud
 
     rig, c, r, X, d, on, image = _spread_scene()
     s2, sig_p, sig_ln, periods = 0.3, 0.3e-3, 0.006, (6.25, 6.25)
-    gu, gv = _log_gradients(image)
-    rows, cols = np.nonzero(on)
-    a1, a2, ok = spread_shift(rig.camera, rig.projector, c, r,
-                              np.stack([cols, rows], 1).astype(float), d[on],
-                              grad_ln_i=np.stack([gu[on], gv[on]], 1),
-                              fringe_periods=periods)
-    shift, pattern = np.zeros(on.shape), np.zeros(on.shape)
-    shift[rows, cols] = np.where(ok, s2 * a1 + s2 * s2 * a2, 0.0)
+    rows, cols, a1, ok, shift = _spread_shift_map(rig, c, r, d, on, image, s2, periods)
+    pattern = np.zeros(on.shape)
     pattern[rows, cols] = np.where(ok, a1, 0.0) / np.max(np.abs(a1[ok]))
     rng = np.random.default_rng(5)
     P = X + (shift + sig_p * rng.standard_normal(on.shape))[..., None] * d
