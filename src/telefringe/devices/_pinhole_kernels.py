@@ -28,12 +28,14 @@ _EPS = 2.220446049250313e-16
 
 def kernel_args(device):
     """``(intr, R, t)`` of a PinholeDevice for the kernels: ``intr`` the 9-tuple of floats
-    above, ``R`` (3, 3) and ``t`` (3,) contiguous float64."""
+    above, ``R`` (3, 3) and ``t`` (3,) contiguous float64 (writable copies)."""
     k = device.intrinsics
     intr = (float(k.fx), float(k.fy), float(k.cx), float(k.cy), float(k.k1), float(k.k2),
             float(k.p1), float(k.p2), float(k.k3))
-    return (intr, np.ascontiguousarray(device.R_dev_world, dtype=np.float64),
-            np.ascontiguousarray(device.t_dev, dtype=np.float64))
+    # fresh writable copies whatever the device's arrays are (read-only, views): numba
+    # compiles one signature per array flag, so a read-only R would cost a second compile
+    return (intr, np.array(device.R_dev_world, dtype=np.float64, order="C"),
+            np.array(device.t_dev, dtype=np.float64, order="C"))
 
 
 @numba.njit(inline="always")

@@ -39,12 +39,15 @@ __all__ = ["kernel_args", "flat_rotation", "sensor_of_point", "pixel_of_sensor",
 
 def kernel_args(device):
     """``(intr, R, t)`` of a TelecentricDevice for the kernels: ``intr`` the 8-tuple of
-    floats above, ``R`` (3, 3) contiguous float64, ``t`` (2,) contiguous float64."""
+    floats above, ``R`` (3, 3) contiguous float64, ``t`` (2,) contiguous float64 (writable
+    copies)."""
     k = device.intrinsics
     intr = (float(k.m), float(k.du), float(k.dv), float(k.u0), float(k.v0), float(k.k1),
             float(k.s1), float(k.s2))
-    return (intr, np.ascontiguousarray(device.R_dev_world, dtype=np.float64),
-            np.ascontiguousarray(device.t_dev, dtype=np.float64))
+    # fresh writable copies whatever the device's arrays are (read-only, views): numba
+    # compiles one signature per array flag, so a read-only R would cost a second compile
+    return (intr, np.array(device.R_dev_world, dtype=np.float64, order="C"),
+            np.array(device.t_dev, dtype=np.float64, order="C"))
 
 
 @numba.njit(inline="always")
