@@ -50,13 +50,14 @@ def test_bga_sigmas_with_correlated_noise_match_monte_carlo():
     """40 noise seeds, 15 balls (cap model "fixed", ~32 cap points a ball): the variance
     of each ball's apex height over the seeds against its mean predicted sigma_height^2,
     averaged over the balls, within 3 sigma of 1 with ``noise=`` (measured 1.02); without
-    it (the independent points' figure) more than 3 sigma above (measured 2.71). The same
+    it (the independent points' figure) more than 3 sigma above (measured 2.84). The same
     for the pitch along the grid's x between the 6 disjoint pairs of neighbours (the
-    variance of the pitch against the two centres' x variances summed; measured 1.10 with,
-    2.3 without). The balls are independent: no pixel of the second camera is read by two
+    variance of the pitch against the two centres' x variances summed; measured 0.98 with,
+    1.81 without). The balls are independent: no pixel of the second camera is read by two
     balls' caps or by a cap and the substrate (no StereoCorrelationWarning), and the
     substrate's common part of the heights is small (1 700 points against ~32 a cap), so
-    the tolerance of a mean of n independent variance ratios is var_ratio_tol / sqrt(n).
+    the tolerance of a mean of n independent variance ratios is var_ratio_tol / sqrt(n)
+    (0.175 for the heights, 0.277 for the pitches).
     The measurement (heights, centres) is the same with and without."""
     rig, ((u1, v1), (u2, v2)) = _bga_scene()
     rng = np.random.default_rng(5)
@@ -71,19 +72,22 @@ def test_bga_sigmas_with_correlated_noise_match_monte_carlo():
         with warnings.catch_warnings():
             warnings.simplefilter("error", StereoCorrelationWarning)
             mc = measure_bga(m.cloud, nominal, options=opt, noise=match_noise(rig, a, b, m))
-        mi = measure_bga(m.cloud, nominal, options=opt)
-        assert mc.n_balls == mi.n_balls == _ROWS * _COLS
-        np.testing.assert_array_equal(mc.height, mi.height)
-        np.testing.assert_array_equal(mc.centre, mi.centre)
+        assert mc.n_balls == _ROWS * _COLS
         h.append(mc.height)
         ph.append(mc.sigma_height ** 2)
-        pi_h.append(mi.sigma_height ** 2)
         # the grid's x is the world x to 0.03 rad here (the camera's tilt): the centres'
         # x sigmas stand for the grid's
         px.append([mc.position[q, 0] - mc.position[p, 0] for p, q in pairs])
         pp.append([mc.sigma_centre[p, 0] ** 2 + mc.sigma_centre[q, 0] ** 2 for p, q in pairs])
-        pi_p.append([mi.sigma_centre[p, 0] ** 2 + mi.sigma_centre[q, 0] ** 2
-                     for p, q in pairs])
+        if _ % 4 == 0:
+            # the independent points' figure: its mean over every 4th seed (10 x 15
+            # balls; it is the measurement's slowest part, the substrate's robust fit)
+            mi = measure_bga(m.cloud, nominal, options=opt)
+            np.testing.assert_array_equal(mc.height, mi.height)
+            np.testing.assert_array_equal(mc.centre, mi.centre)
+            pi_h.append(mi.sigma_height ** 2)
+            pi_p.append([mi.sigma_centre[p, 0] ** 2 + mi.sigma_centre[q, 0] ** 2
+                         for p, q in pairs])
     emp_h = np.var(h, axis=0, ddof=1)
     r_h, ri_h = np.mean(emp_h / np.mean(ph, axis=0)), np.mean(emp_h / np.mean(pi_h, axis=0))
     emp_p = np.var(px, axis=0, ddof=1)
