@@ -246,3 +246,41 @@ def test_batch_bga_row_equals_measure_bga(stereo_bga):
     doc = json.loads((tmp / "res" / "scans" / row["scan"] / "measurement.json").read_text())
     for k in ("height_mm", "sigma_height_mm", "sigma_height_noise_mm"):
         np.testing.assert_allclose(doc["balls"][k], one["balls"][k], rtol=1e-9, err_msg=k)
+
+
+@pytest.mark.parametrize("free_radius", [False, True])
+def test_sandwiches_reduce_to_the_fits_own_covariance(free_radius):
+    """With no shared source and each point's own variance that of its weight (var_own =
+    1 / (w (n . d)^2): the residuals' covariance the identity), the cap's sandwich is the
+    fit's own residual-scaled covariance: fit_sphere's (fixed or free radius) to 1e-12
+    (measured 3e-15) and _fit_along_line's depth sigma to 1e-10 (measured 2.4e-11: it
+    stops at a step of 1e-9 mm): the linearisations (the residuals' Jacobian and their
+    response to a point moving along its line) agree with the fits."""
+    from telefringe.metrology.bga.highlights import _fit_along_line
+    from telefringe.metrology.bga.stereo import line_sandwich, sphere_sandwich
+    from telefringe.metrology.spheres import fit_sphere
+
+    rng = np.random.default_rng(3)
+    r, c0 = 0.36, np.array([0.1, -0.2, 0.26])
+    t = rng.uniform(0, np.radians(55), 60)
+    f = rng.uniform(0, 2 * np.pi, 60)
+    nn = np.stack([np.sin(t) * np.cos(f), np.sin(t) * np.sin(f), np.cos(t)], axis=1)
+    d = np.array([0.05, -0.03, -1.0])
+    d /= np.linalg.norm(d)  # the camera's line, into the scene
+    pts = c0 + r * nn + rng.normal(0, 0.002, 60)[:, None] * d
+    w = rng.uniform(0.5, 2.0, 60)
+    fit = fit_sphere(pts, weights=w, radius=None if free_radius else r)
+    assert fit.inliers.all()
+    v = pts - fit.centre
+    cosd = np.abs((v / np.linalg.norm(v, axis=1)[:, None]) @ d)
+    parts = (1.0 / (w / w.mean() * cosd**2), np.zeros((60, 4)), np.full((60, 4), -1),
+             np.broadcast_to(d, (60, 3)))
+    cov = sphere_sandwich(pts, w / w.mean(), fit.centre, fit.radius, free_radius, parts)
+    np.testing.assert_allclose(cov, fit.covariance, rtol=1e-12, atol=1e-20)
+    res = _fit_along_line(pts, w, fit.centre + 0.3 * d, d, r, fit.centre)
+    assert res is not None
+    centre, s_t = res
+    v = pts - centre
+    cosd = np.abs((v / np.linalg.norm(v, axis=1)[:, None]) @ d)
+    parts = (1.0 / (w * cosd**2),) + parts[1:]
+    np.testing.assert_allclose(line_sandwich(pts, w, centre, r, d, parts), s_t, rtol=1e-10)
