@@ -26,6 +26,11 @@ class CapFit(NamedTuple):
     points, weights : (m, 3), (m,), the points of the fit (moved by the point-spread
         model when it was used) and their weights; dcentre_dtheta : (3, p), the centre's
         sensitivity to the common point-spread parameters (point-spread fits only).
+    index : (m,) int, the row of each of ``points`` among the cap points the fit was
+        given (its candidate's ``points``; None for point-spread fits unless asked).
+    regressors, views : (m, p), (m, 3), the point-spread model's regressors of those
+        points and their unit vectors toward the camera (point-spread fits for a
+        two-camera match's noise only).
     """
 
     fit: SphereFit | None
@@ -35,6 +40,8 @@ class CapFit(NamedTuple):
     weights: np.ndarray | None = None
     dcentre_dtheta: np.ndarray | None = None
     index: np.ndarray | None = None
+    regressors: np.ndarray | None = None
+    views: np.ndarray | None = None
 
 
 def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,

@@ -196,10 +196,10 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
         each other there, which a resolved BGA's are not; each ball's sandwich is then
         the whole of its noise and the balls are independent. Where some do share a
         pixel a :class:`~telefringe.metrology.bga.stereo.StereoCorrelationWarning` says
-        so (the pitch and coplanarity figures leave that correlation out). The common
-        point-spread parameters' part of the heights (cap model "psf") stays the
-        independent points' estimate (the same for every ball; it cancels in the pitch
-        and mostly in the coplanarity).
+        so (the pitch and coplanarity figures leave that correlation out). With cap
+        model "psf" the common point-spread parameters' covariance (their part of every
+        height, and ``sigma_psf_variance``) is the sandwich of their Schur-reduced solve
+        (:func:`.stereo.theta_sandwich`).
 
     Returns
     -------
@@ -250,11 +250,20 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
     cands = cap_candidates(cloud, seg, D, image=image_arr, gradient=gradient,
                            min_fraction=opt.min_fraction, edge_px=edge_px,
                            cap_min_height=opt.cap_min_height, highlight_px=highlight_px)
-    caps, cov_theta, s2, psf_run = _fit_caps(cands, cloud, D, opt,
-                                             free_gradient=not grad_known,
-                                             with_index=noise is not None)
+    caps, cov_theta, s2, psf_run, solved = _fit_caps(cands, cloud, D, opt,
+                                                     free_gradient=not grad_known,
+                                                     with_index=noise is not None)
     if noise is not None:
         caps = _with_stereo_noise(caps, cands, cloud, noise, seg)
+        if cov_theta is not None and np.all(np.isfinite(cov_theta)):
+            from telefringe.metrology.bga.stereo import noise_at, theta_sandwich
+
+            used = [k for k in solved if caps[k].fit is not None]
+            cov_theta = theta_sandwich(
+                [caps[k] for k in used],
+                [noise_at(cloud, noise, cands[k].pixels[caps[k].index]) for k in used],
+                D / 2)
+            s2 = (s2[0], float(np.sqrt(cov_theta[0, 0])))
     ok = [k for k, c in enumerate(caps) if c.fit is not None]
     if not ok:
         why = sorted({c.reason for c in caps})
@@ -269,7 +278,9 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
 
 def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradient: bool,
               with_index: bool = False):
-    """Stage: one CapFit per candidate (those with a reason stay unfitted)."""
+    """Stage: one CapFit per candidate (those with a reason stay unfitted), the common
+    point-spread parameters' covariance, (s^2, its sigma), (balls, converged) of their
+    solve and the candidates it was solved on."""
     idx = [k for k, c in enumerate(cands) if c.reason is None]
     caps_in = [(cands[k].points, cands[k].sigma, cands[k].gradient) for k in idx]
     shared = shared_direction(cloud)
@@ -278,6 +289,7 @@ def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradi
     s2 = (np.nan, np.nan)
     cov_theta = None
     psf_run = (0, None)
+    solved = []
     if opt.cap_model == "psf":
         angle = opt.view_angle_deg
         res = _fit_caps_smoothed(caps_in, view, D / 2,
@@ -288,6 +300,7 @@ def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradi
         s2 = (float(res.theta[0]), float(np.sqrt(res.cov_theta[0, 0])))
         cov_theta = res.cov_theta
         psf_run = (res.n_balls, res.converged)
+        solved = [idx[int(t)] for t in res.sub] if res.sub is not None else []
     else:
         fits = fit_caps_alone(caps_in, view, D, weighted=bool(opt.weighted),
                               max_view_angle_deg=opt.view_angle_deg,
@@ -295,7 +308,7 @@ def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradi
     out = [CapFit(None, c.reason) for c in cands]
     for k, f in zip(idx, fits, strict=True):
         out[k] = f
-    return out, cov_theta, s2, psf_run
+    return out, cov_theta, s2, psf_run, solved
 
 
 def _with_stereo_noise(caps, cands, cloud, noise, seg):

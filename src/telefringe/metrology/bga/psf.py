@@ -30,6 +30,7 @@ class PSFCapFits(NamedTuple):
     caps : list of CapFit, one per input cap.   theta : (p,) the common parameters
     (s^2 in mm^2 first), NaN when the solve failed.   cov_theta : (p, p), NaN likewise.
     rounds : Gauss-Newton rounds run.   converged : bool.   n_balls : balls in the solve.
+    sub : (n_balls,) int, those balls (indices into ``caps``).
     """
 
     caps: list
@@ -38,6 +39,7 @@ class PSFCapFits(NamedTuple):
     rounds: int
     converged: bool
     n_balls: int
+    sub: np.ndarray | None = None
 
 
 def shared_direction(cloud: PointCloud) -> np.ndarray | None:
@@ -270,7 +272,7 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
     is solved (theta NaN, no warning: there is no ball to measure).
 
     ``with_index``: each CapFit's ``index`` (its points' rows among the cap's given
-    points, for the stereo matches' noise), else None.
+    points), ``regressors`` and ``views`` (for the stereo matches' noise), else None.
 
     Returns
     -------
@@ -336,5 +338,7 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
         out[k] = CapFit(f, None, points=fits["q"][rows][inl], weights=packed["w"][rows][inl],
                         dcentre_dtheta=fits["dc"][t],
                         index=(_rows_of(caps[k][0], packed["pts"][rows][inl]) if with_index
-                               else None))
-    return PSFCapFits(out, theta, cov, n_rounds, converged, len(sub))
+                               else None),
+                        regressors=packed["R"][rows][inl] if with_index else None,
+                        views=packed["view"][rows][inl] if with_index else None)
+    return PSFCapFits(out, theta, cov, n_rounds, converged, len(sub), sub)
