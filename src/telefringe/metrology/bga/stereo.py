@@ -13,9 +13,9 @@ independent points' figure is; so is the point-spread model's common parameters'
 
 Monte Carlo (tests/test_stereo_noise_bga.py, 40 seeds, 15 balls, cap model "fixed"): the
 apex heights' variance / predicted 1.02 with the noise, 2.84 without; the pitch 0.98 and
-1.81. Cap model "psf" (80 seeds, /tmp script, not a test: its heights share the common
-parameters' part, so a pooled ratio needs many seeds): 0.96 with, 1.71 without, 1.35
-with the caps' sandwich but the common parameters' independent figure.
+1.81. Cap model "psf" on the same scene (80 seeds; not a test: the heights share the common
+parameters' part, so a ratio pooled over the balls needs many seeds): 0.96 with, 1.71
+without, 1.35 with the caps' sandwich but the common parameters' independent figure.
 
 Between balls: two balls' errors are correlated only through second-camera pixels read by
 both balls' cap points (or by a cap's and the substrate's points), i.e. cap points of two
