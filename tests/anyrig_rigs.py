@@ -190,3 +190,22 @@ def noisy_coords(u, v, s, rng=None):
 def var_ratio_tol(n_runs, k=3.0):
     """k sigma of the ratio of a sample variance of n_runs Gaussian draws to the true."""
     return k * np.sqrt(2.0 / (n_runs - 1))
+
+
+def ball_hits(cam, shape, centres, r):
+    """Where each pixel's line first meets a BGA: spheres of radius ``r`` (mm) at
+    ``centres`` (n, 3) on the substrate z = 0 (mm); the camera's occlusions are exact."""
+    rows, cols = shape
+    v, u = np.mgrid[0:rows, 0:cols].astype(float)
+    o, d = cam.backproject(u, v)
+    o = np.broadcast_to(o, shape + (3,))
+    d = np.broadcast_to(d, shape + (3,))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -o[..., 2] / d[..., 2]  # the substrate
+        for c in np.asarray(centres, dtype=np.float64):
+            oc = o - c
+            b = np.sum(d * oc, axis=-1)
+            disc = b * b - (np.sum(oc * oc, axis=-1) - r * r)
+            t = np.where(disc >= 0, -b - np.sqrt(np.where(disc >= 0, disc, 0.0)), np.inf)
+            s = np.minimum(s, t)
+    return o + s[..., None] * d

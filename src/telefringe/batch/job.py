@@ -22,7 +22,7 @@ MEASURES = ("none", "bga", "plate", "sphere", "steps")
 #: in each scan's output folder: its row of the table, with the key of its inputs
 ROW_FILE = "row.json"
 #: bumped when the outputs of a scan change meaning (old outputs are then redone)
-OUTPUT_VERSION = 2
+OUTPUT_VERSION = 3
 
 #: the columns every row has, in order (the measurement's own follow, named
 #: ``<measure>.<field>``); their types are in :data:`telefringe.batch.table.FIXED_TYPES`
@@ -58,7 +58,7 @@ class BatchOptions:
     second : str or None, a two-camera rig: the second camera's scan folder of each scan,
         relative to the scan's folder (e.g. ``"../camera_2"``); the two scans are matched
         as ``telefringe reconstruct SCAN --second SECOND`` does, points.npz keeps the
-        matches' noise split and the plate, sphere and steps fits take it (neighbouring
+        matches' noise split and the plate, sphere, steps and BGA fits take it (neighbouring
         matches share the second camera's pixels), as ``telefringe measure`` does. None:
         the first camera and the projector.
     """
@@ -184,8 +184,8 @@ def _measure(rec, options: BatchOptions, rig=None, noise=None, scan=None, scan_2
     calibration's part to each figure's uncertainty (a two-camera cloud's through both
     cameras, :func:`~telefringe.metrology.uncertainty.for_stereo_scan`) and fits the
     sphere through the cameras' point-spread model. ``noise``: a two-camera match's
-    StereoNoise, which the plate's, the steps' and (through the point-spread model)
-    the sphere's fits take; ``scan``, ``scan_2``: the cameras' scans (the sphere's
+    StereoNoise, which the plate's, the steps', the BGA's and (through the point-spread
+    model) the sphere's fits take; ``scan``, ``scan_2``: the cameras' scans (the sphere's
     point-spread model)."""
     cal = _calibration_of(rig)
     measurement, summary = _measure_only(rec, options, rig, noise, cal, scan, scan_2)
@@ -278,7 +278,8 @@ def _measure_only(rec, options: BatchOptions, rig=None, noise=None, cal=None, sc
                          pitch_mm=0.8 if options.pitch is None else options.pitch,
                          ball_diameter_mm=options.diameter)
     bm = measure_bga(cloud, nominal, image=rec.radiance,
-                     options=BGAOptions(cap_model="free" if options.free_radius else "psf"))
+                     options=BGAOptions(cap_model="free" if options.free_radius else "psf"),
+                     noise=noise)
     return bm, reports.bga_summary(bm)
 
 

@@ -395,7 +395,8 @@ def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,
                        calibration=None):
     """Measure the BGA in ``out`` (BGAMeasurement; with a ``calibration``, a
     RigCalibration, its uncertainty including the calibration's). User problems raise
-    InputError.
+    InputError. A two-camera reconstruction's matches' noise (kept in points.npz) enters
+    the noise figures (``measure_bga(..., noise=)``).
     ``free_radius``: fit each cap's radius too (diameters reported, apex heights less
     accurate) instead of the nominal-radius fit through the point-spread model."""
     from telefringe.io.points_npz import load_points
@@ -407,7 +408,9 @@ def measure_bga_folder(out, *, rows: int | None = None, cols: int | None = None,
         nominal = BGANominal(rows=rows, cols=cols, pitch_mm=pitch, ball_diameter_mm=diameter)
         # the radiance image locates each ball by its specular highlight (better pitch)
         options = BGAOptions(cap_model="free" if free_radius else "psf")
-        m = measure_bga(pf.cloud, nominal, image=pf.radiance, options=options)
+        noise = _expand(_stereo_noise(out, pf, "the apex heights, positions, pitch and "
+                                               "coplanarity"))
+        m = measure_bga(pf.cloud, nominal, image=pf.radiance, options=options, noise=noise)
     except _metrology_errors() as exc:
         _fail(out, exc)
     from telefringe.metrology.uncertainty import bga_uncertainty

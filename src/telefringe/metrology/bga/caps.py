@@ -26,6 +26,11 @@ class CapFit(NamedTuple):
     points, weights : (m, 3), (m,), the points of the fit (moved by the point-spread
         model when it was used) and their weights; dcentre_dtheta : (3, p), the centre's
         sensitivity to the common point-spread parameters (point-spread fits only).
+    index : (m,) int, the row of each of ``points`` among the cap points the fit was
+        given (its candidate's ``points``; None for point-spread fits unless asked).
+    regressors, views : (m, p), (m, 3), the point-spread model's regressors of those
+        points and their unit vectors toward the camera (point-spread fits for a
+        two-camera match's noise only).
     """
 
     fit: SphereFit | None
@@ -34,6 +39,9 @@ class CapFit(NamedTuple):
     points: np.ndarray | None = None
     weights: np.ndarray | None = None
     dcentre_dtheta: np.ndarray | None = None
+    index: np.ndarray | None = None
+    regressors: np.ndarray | None = None
+    views: np.ndarray | None = None
 
 
 def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
@@ -54,6 +62,7 @@ def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
     ok = np.all(np.isfinite(pts), axis=1)
     if weighted:
         ok &= np.isfinite(sig) & (sig > 0)
+    rows = np.flatnonzero(ok)  # each fitted point's row among the given ones
     pts, sig = pts[ok], sig[ok]
     view = np.asarray(view, dtype=np.float64)
     if view.ndim == 2:
@@ -72,7 +81,7 @@ def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
             keep = cos_t >= np.cos(np.radians(max_view_angle_deg))
         if np.count_nonzero(keep) < 10:
             return CapFit(None, "too_few_points_facing_camera")
-        pts, cos_t, sig = pts[keep], cos_t[keep], sig[keep]
+        pts, cos_t, sig, rows = pts[keep], cos_t[keep], sig[keep], rows[keep]
         if weighted:
             w = 1.0 / (sig * cos_t) ** 2
     f = None
@@ -88,7 +97,9 @@ def _fit_cap(pts: np.ndarray, sig: np.ndarray, view: np.ndarray, D: float, *,
         f = fit_sphere(pts, weights=w, robust=True, radius=D / 2)
         if not f.rms < 0.1 * D:  # not a cap of the nominal ball
             return CapFit(None, "fit_rms_too_large")
-    return CapFit(f, None, radius_free=free)
+    inl = np.asarray(f.inliers, dtype=bool)
+    return CapFit(f, None, radius_free=free, points=pts[inl],
+                  weights=np.ones(int(inl.sum())) if w is None else w[inl], index=rows[inl])
 
 
 def fit_caps_alone(caps, view, D: float, *, weighted: bool,

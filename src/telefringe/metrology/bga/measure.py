@@ -139,7 +139,7 @@ class BGAOptions:
 
 
 def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector=None,
-                options: BGAOptions | None = None) -> BGAMeasurement:
+                options: BGAOptions | None = None, noise=None) -> BGAMeasurement:
     """Inspect a ball grid array from its point cloud.
 
     Stages: the substrate plane is fitted robustly and pixels above it form one region
@@ -182,6 +182,24 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
         which also absorbs the v fringes' share). Needs ``cap_model="psf"``, an
         ``image`` and a telecentric camera (one viewing direction).
     options : BGAOptions, optional (default ``BGAOptions()``).
+    noise : StereoNoise, optional, a cloud matched by two cameras: the matches' noise
+        split into its independent parts on the cloud's grid
+        (:func:`telefringe.reconstruction.stereo.match_noise`). Neighbouring matches
+        share the second camera's pixels, so a cap's points are correlated and a fit that
+        treats them as independent understates the apex's and the centre's noise. With
+        it, each ball's cap fit (every cap model, and the depth along the highlight's
+        line) and the substrate plane take the sandwich of their points' exact
+        covariance (:mod:`telefringe.metrology.bga.stereo`), so ``sigma_height_noise``,
+        ``sigma_centre``, the pitch's and the coplanarity's noise figures hold it; the
+        fits themselves are the same. Between balls: their caps (and the substrate's
+        points) share no pixel of the second camera unless matched within two pixels of
+        each other there, which a resolved BGA's are not; each ball's sandwich is then
+        the whole of its noise and the balls are independent. Where some do share a
+        pixel a :class:`~telefringe.metrology.bga.stereo.StereoCorrelationWarning` says
+        so (the pitch and coplanarity figures leave that correlation out). With cap
+        model "psf" the common point-spread parameters' covariance (their part of every
+        height, and ``sigma_psf_variance``) is the sandwich of their Schur-reduced solve
+        (:func:`.stereo.theta_sandwich`).
 
     Returns
     -------
@@ -193,7 +211,8 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
         No ball, no ball that could be fitted, a grid that does not fit the nominal one,
         an image of the wrong shape, or a ``projector`` or ``highlight_px`` that would
         not be used (no image, or a cap model without the point-spread term), or a
-        ``projector`` with a pinhole camera.
+        ``projector`` with a pinhole camera; ``noise`` of another grid or not covering a
+        fitted point.
 
     Warns
     -----
@@ -201,6 +220,9 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
         The point-spread variance could not be estimated (``psf_variance`` NaN).
     PSFConvergenceWarning
         Its Gauss-Newton rounds ended before it converged (``psf_converged`` False).
+    StereoCorrelationWarning
+        With ``noise``: two balls (or a ball and the substrate) share second-camera
+        pixels.
     """
     opt = BGAOptions() if options is None else options
     if cloud.count < 10:
@@ -213,8 +235,11 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
         raise MetrologyError("highlight_px is used only with an image")
     image_arr = None if image is None else np.array(image, dtype=np.float64)
     D = float(nominal.ball_diameter_mm)
+    if noise is not None and np.shape(noise.var_own) != cloud.shape:
+        raise MetrologyError(f"noise has shape {np.shape(noise.var_own)}, the cloud "
+                             f"{cloud.shape}")
     seg = segment(cloud, D, min_height=opt.min_height, substrate_margin=opt.substrate_margin,
-                  seed=opt.seed)
+                  seed=opt.seed, noise=noise)
     big = bool(np.isfinite(seg.px_mm) and D / seg.px_mm >= 10.0)
     edge_px = (1 if big else 0) if opt.edge_px is None else int(opt.edge_px)
     highlight_px = (2.5 if big else 0.0) if opt.highlight_px is None else opt.highlight_px
@@ -225,22 +250,37 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
     cands = cap_candidates(cloud, seg, D, image=image_arr, gradient=gradient,
                            min_fraction=opt.min_fraction, edge_px=edge_px,
                            cap_min_height=opt.cap_min_height, highlight_px=highlight_px)
-    caps, cov_theta, s2, psf_run = _fit_caps(cands, cloud, D, opt,
-                                             free_gradient=not grad_known)
+    caps, cov_theta, s2, psf_run, solved = _fit_caps(cands, cloud, D, opt,
+                                                     free_gradient=not grad_known,
+                                                     with_index=noise is not None)
+    if noise is not None:
+        caps = _with_stereo_noise(caps, cands, cloud, noise, seg)
+        if cov_theta is not None and np.all(np.isfinite(cov_theta)):
+            from telefringe.metrology.bga.stereo import noise_at, theta_sandwich
+
+            used = [k for k in solved if caps[k].fit is not None]
+            cov_theta = theta_sandwich(
+                [caps[k] for k in used],
+                [noise_at(cloud, noise, cands[k].pixels[caps[k].index]) for k in used],
+                D / 2)
+            s2 = (s2[0], float(np.sqrt(cov_theta[0, 0])))
     ok = [k for k, c in enumerate(caps) if c.fit is not None]
     if not ok:
         why = sorted({c.reason for c in caps})
         raise MetrologyError(f"no ball could be fitted ({', '.join(why)})")
     balls = _centres_and_apexes(cloud, seg, image_arr, [cands[k] for k in ok],
-                                [caps[k] for k in ok], cov_theta, opt.cap_model)
+                                [caps[k] for k in ok], cov_theta, opt.cap_model, noise)
     failed = [(cands[k], caps[k].reason) for k in range(len(cands)) if caps[k].fit is None]
     model = (SIGMA_HEIGHT_MODEL_PX * seg.px_mm if opt.cap_model == "psf" and image is not None
              else np.nan)
     return _on_the_grid(cloud, seg, nominal, balls, failed, s2, psf_run, float(model))
 
 
-def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradient: bool):
-    """Stage: one CapFit per candidate (those with a reason stay unfitted)."""
+def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradient: bool,
+              with_index: bool = False):
+    """Stage: one CapFit per candidate (those with a reason stay unfitted), the common
+    point-spread parameters' covariance, (s^2, its sigma), (balls, converged) of their
+    solve and the candidates it was solved on."""
     idx = [k for k, c in enumerate(cands) if c.reason is None]
     caps_in = [(cands[k].points, cands[k].sigma, cands[k].gradient) for k in idx]
     shared = shared_direction(cloud)
@@ -249,16 +289,18 @@ def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradi
     s2 = (np.nan, np.nan)
     cov_theta = None
     psf_run = (0, None)
+    solved = []
     if opt.cap_model == "psf":
         angle = opt.view_angle_deg
         res = _fit_caps_smoothed(caps_in, view, D / 2,
                                  max_view_angle_deg=90.0 if angle is None else angle,
-                                 free_gradient=free_gradient)
+                                 free_gradient=free_gradient, with_index=with_index)
         fits = [c if c.fit is None or c.fit.rms < 0.1 * D
                 else CapFit(None, "fit_rms_too_large") for c in res.caps]
         s2 = (float(res.theta[0]), float(np.sqrt(res.cov_theta[0, 0])))
         cov_theta = res.cov_theta
         psf_run = (res.n_balls, res.converged)
+        solved = [idx[int(t)] for t in res.sub] if res.sub is not None else []
     else:
         fits = fit_caps_alone(caps_in, view, D, weighted=bool(opt.weighted),
                               max_view_angle_deg=opt.view_angle_deg,
@@ -266,12 +308,48 @@ def _fit_caps(cands, cloud: PointCloud, D: float, opt: BGAOptions, *, free_gradi
     out = [CapFit(None, c.reason) for c in cands]
     for k, f in zip(idx, fits, strict=True):
         out[k] = f
-    return out, cov_theta, s2, psf_run
+    return out, cov_theta, s2, psf_run, solved
 
 
-def _centres_and_apexes(cloud, seg, image, cands, caps, cov_theta, cap_model):
+def _with_stereo_noise(caps, cands, cloud, noise, seg):
+    """Stage (two cameras): each fitted cap's covariance the sandwich of its points'
+    correlated noise (:func:`.stereo.sphere_sandwich`); a StereoCorrelationWarning when
+    balls, or a ball and the substrate, share second-camera pixels."""
+    import warnings
+
+    from telefringe.metrology.bga.stereo import (
+        StereoCorrelationWarning,
+        noise_at,
+        shared_sources,
+        sphere_sandwich,
+    )
+
+    out = list(caps)
+    groups = []
+    for k, c in enumerate(caps):
+        if c.fit is None:
+            continue
+        parts = noise_at(cloud, noise, cands[k].pixels[c.index])
+        cov = sphere_sandwich(c.points, c.weights, c.fit.centre, c.fit.radius,
+                              bool(c.radius_free), parts)
+        out[k] = c._replace(fit=replace(c.fit, covariance=cov))
+        groups.append(parts[2])
+    K = np.shape(noise.sources)[-1]
+    groups.append(np.asarray(noise.sources).reshape(-1, K)[seg.substrate_pixels])
+    between, with_sub = shared_sources(groups)
+    if between or with_sub:
+        warnings.warn(
+            f"{between} pixel(s) of the second camera are read by the cap points of two "
+            f"balls and {with_sub} by a cap's and the substrate's: their errors are "
+            "correlated, which the pitch's and the coplanarity's noise figures leave out",
+            StereoCorrelationWarning, stacklevel=3)
+    return out
+
+
+def _centres_and_apexes(cloud, seg, image, cands, caps, cov_theta, cap_model, noise=None):
     """Stage: centres (highlight-refined with an image), apexes, heights and their
-    uncertainties of the fitted balls."""
+    uncertainties of the fitted balls (``noise``: a two-camera match's, for the depth
+    along the highlight's line)."""
     nrm = seg.substrate.normal
     fits = [c.fit for c in caps]
     centre = np.array([f.centre for f in fits])
@@ -297,6 +375,12 @@ def _centres_and_apexes(cloud, seg, image, cands, caps, cov_theta, cap_model):
                                   radius[k], centre[k])
             if res is not None:
                 centre[k], s_t = res
+                if noise is not None:
+                    from telefringe.metrology.bga.stereo import line_sandwich, noise_at
+
+                    s_t = line_sandwich(caps[k].points, caps[k].weights, centre[k],
+                                        radius[k], d,
+                                        noise_at(cloud, noise, cands[k].pixels[caps[k].index]))
                 sig_top[k] = s_t * abs(float(d @ nrm))
     if cov_theta is not None and np.all(np.isfinite(cov_theta)):
         # the estimated spread parameters are common to every ball: their uncertainty

@@ -30,6 +30,7 @@ class PSFCapFits(NamedTuple):
     caps : list of CapFit, one per input cap.   theta : (p,) the common parameters
     (s^2 in mm^2 first), NaN when the solve failed.   cov_theta : (p, p), NaN likewise.
     rounds : Gauss-Newton rounds run.   converged : bool.   n_balls : balls in the solve.
+    sub : (n_balls,) int, those balls (indices into ``caps``).
     """
 
     caps: list
@@ -38,6 +39,7 @@ class PSFCapFits(NamedTuple):
     rounds: int
     converged: bool
     n_balls: int
+    sub: np.ndarray | None = None
 
 
 def shared_direction(cloud: PointCloud) -> np.ndarray | None:
@@ -237,9 +239,16 @@ def _pack_caps(caps, view, r: float, cos_min: float, npar: int) -> dict:
     return p
 
 
+def _rows_of(given: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """The row of each point of ``kept`` (k, 3) among ``given`` (m, 3), of which
+    :func:`_pack_caps` copied it unchanged (in order; every pixel's point is its own)."""
+    where = {tuple(p): i for i, p in enumerate(np.asarray(given, dtype=np.float64))}
+    return np.array([where[tuple(p)] for p in kept], dtype=np.int64)
+
+
 def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: float,
                        free_gradient: bool, sub_every: int = 4,
-                       rounds: int = 6) -> PSFCapFits:
+                       rounds: int = 6, with_index: bool = False) -> PSFCapFits:
     """Fixed-radius cap fits that model the camera's point spread, and its variance.
 
     ``caps``: list of (pts (m, 3), sig (m,), B (m, 3)) per ball (B: see
@@ -261,6 +270,9 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
     :class:`PSFSolveWarning` is issued, theta and its covariance are NaN and the caps are
     fitted with theta = 0 (no point-spread correction). Without any usable cap nothing
     is solved (theta NaN, no warning: there is no ball to measure).
+
+    ``with_index``: each CapFit's ``index`` (its points' rows among the cap's given
+    points), ``regressors`` and ``views`` (for the stereo matches' noise), else None.
 
     Returns
     -------
@@ -324,5 +336,9 @@ def _fit_caps_smoothed(caps, view: np.ndarray, r: float, *, max_view_angle_deg: 
                       float(fits["form"][t]), int(counts[k]), int(fits["n_inl"][t]), inl,
                       c4)
         out[k] = CapFit(f, None, points=fits["q"][rows][inl], weights=packed["w"][rows][inl],
-                        dcentre_dtheta=fits["dc"][t])
-    return PSFCapFits(out, theta, cov, n_rounds, converged, len(sub))
+                        dcentre_dtheta=fits["dc"][t],
+                        index=(_rows_of(caps[k][0], packed["pts"][rows][inl]) if with_index
+                               else None),
+                        regressors=packed["R"][rows][inl] if with_index else None,
+                        views=packed["view"][rows][inl] if with_index else None)
+    return PSFCapFits(out, theta, cov, n_rounds, converged, len(sub), sub)

@@ -51,7 +51,10 @@ class BGAMeasurement:
         NaN). It does not hold the calibration's uncertainty.
     sigma_height_noise : (n,) mm, the part from the pixels' noise (a repeatability: on
         the virtual paper rig the scatter of each ball's height over noise seeds is
-        0.99 of it over 4 seeds of one window, 0.87 over seed pairs of 136 balls).
+        0.99 of it over 4 seeds of one window, 0.87 over seed pairs of 136 balls). A
+        two-camera cloud measured with its matches' noise (``measure_bga(..., noise=)``)
+        has it and ``sigma_centre`` from the sandwich of the caps' correlated points
+        (tests/test_stereo_noise_bga.py).
     sigma_height_model : float, mm, the per-ball error of the cap model, which varies
         from ball to ball but not with the noise: ``SIGMA_HEIGHT_MODEL_PX`` (0.023) camera
         pixels on the object for cap model "psf" with an image, measured on the virtual

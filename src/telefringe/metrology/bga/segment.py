@@ -19,7 +19,8 @@ class Segmentation(NamedTuple):
     above : (rows, cols) bool, pixels above the ball threshold.   labels : (rows, cols)
     int, their connected regions (0: none), ``n_labels`` of them.   px_mm : float, the
     cloud's point spacing (NaN when unknown).   footprint_px : float, a ball's expected
-    footprint in pixels (0 when unknown).
+    footprint in pixels (0 when unknown).   substrate_pixels : (k,) int, flat indices of the
+    pixels whose points the substrate plane was fitted on (its inliers).
     """
 
     substrate: PlaneFit
@@ -29,6 +30,7 @@ class Segmentation(NamedTuple):
     n_labels: int
     px_mm: float
     footprint_px: float
+    substrate_pixels: np.ndarray | None = None
 
 
 class Candidate(NamedTuple):
@@ -41,6 +43,7 @@ class Candidate(NamedTuple):
     ``reason``).   gradient : (m, 3) brightness-gradient terms (zeros without them).
     view : (m, 3) unit vectors from each point toward the camera (along its pixel's
     line of sight: the same for every point of a telecentric camera).
+    pixels : (m,) int, flat (row-major) index of each cap point's pixel in the cloud.
     """
 
     slice: tuple
@@ -50,6 +53,7 @@ class Candidate(NamedTuple):
     sigma: np.ndarray | None = None
     gradient: np.ndarray | None = None
     view: np.ndarray | None = None
+    pixels: np.ndarray | None = None
 
 
 def _sigma_weights(cloud: PointCloud, sel: np.ndarray):
@@ -58,14 +62,34 @@ def _sigma_weights(cloud: PointCloud, sel: np.ndarray):
     return 1.0 / s**2 if np.all(np.isfinite(s) & (s > 0)) else None
 
 
+def _substrate_fit(cloud: PointCloud, sel: np.ndarray, seed: int, noise):
+    """The robust plane of the selected points (its weights 1 / sigma_z^2 when every
+    sigma is known), and the flat indices of its inliers' pixels. With ``noise`` (a
+    two-camera match's StereoNoise) the plane's covariance is the sandwich of the
+    points' correlated noise (:func:`fit_plane`); the plane is the same."""
+    if noise is None:
+        plane = fit_plane(cloud.xyz[sel], weights=_sigma_weights(cloud, sel), robust=True,
+                          seed=seed)
+    else:
+        from dataclasses import replace
+
+        if _sigma_weights(cloud, sel) is None:
+            raise MetrologyError("the substrate's points lack a sigma_z: no covariance "
+                                 "with the stereo noise")
+        # the same points and weights (fit_plane weights a PointCloud's by 1 / sigma_z^2)
+        plane = fit_plane(replace(cloud, mask=sel), robust=True, seed=seed, noise=noise)
+    return plane, np.flatnonzero(sel.reshape(-1))[np.asarray(plane.inliers, dtype=bool)]
+
+
 def segment(cloud: PointCloud, D: float, *, min_height: float | None,
-            substrate_margin: float | None, seed: int) -> Segmentation:
+            substrate_margin: float | None, seed: int, noise=None) -> Segmentation:
     """Substrate plane and ball regions.
 
     The substrate is fitted robustly (the balls are outliers; on every third row and
     column of a cloud of more than 200 000 points); pixels more than ``min_height``
     (default 0.2 D) above it form connected regions; the substrate is then refitted on
     the points farther than ``substrate_margin`` (default D / 2) from every region.
+    ``noise``: a two-camera match's StereoNoise, for the plane's covariance.
     """
     from telefringe.metrology.bga._kernels import heights, row_steps, within_taxicab
 
@@ -75,8 +99,7 @@ def segment(cloud: PointCloud, D: float, *, min_height: float | None,
     sub_sel = np.zeros(cloud.shape, dtype=bool)
     sub_sel[::k, ::k] = True
     sub_sel &= cloud.mask
-    substrate = fit_plane(cloud.xyz[sub_sel], weights=_sigma_weights(cloud, sub_sel),
-                          robust=True, seed=seed)
+    substrate, sub_px = _substrate_fit(cloud, sub_sel, seed, noise)
     h = np.empty(cloud.shape)
     heights(xyz, mask, substrate.normal, substrate.offset, h)
     thr = 0.2 * D if min_height is None else float(min_height)
@@ -99,10 +122,10 @@ def segment(cloud: PointCloud, D: float, *, min_height: float | None,
             far[1::2, :] = False
             far[:, 1::2] = False
         if np.count_nonzero(far) >= max(100, 0.01 * cloud.count):
-            substrate = fit_plane(cloud.xyz[far], weights=_sigma_weights(cloud, far),
-                                  robust=True, seed=seed)
+            substrate, sub_px = _substrate_fit(cloud, far, seed, noise)
             heights(xyz, mask, substrate.normal, substrate.offset, h)
-    return Segmentation(substrate, h, above, labels, int(n_lab), px_mm, float(foot))
+    return Segmentation(substrate, h, above, labels, int(n_lab), px_mm, float(foot),
+                        sub_px)
 
 
 def cap_candidates(cloud: PointCloud, seg: Segmentation, D: float, *, image, gradient,
@@ -157,5 +180,8 @@ def cap_candidates(cloud: PointCloud, seg: Segmentation, D: float, *, image, gra
         grad = np.zeros((pts.shape[0], 3)) if gradient is None else gradient[sl][sel]
         view = (np.broadcast_to(-dirs, pts.shape).copy() if dirs.ndim == 1
                 else -dirs[sl][sel])
-        out.append(Candidate(sl, region, None, pts, cloud.sigma_line[sl][sel], grad, view))
+        rr, cc = np.nonzero(sel)  # row-major, as cloud.xyz[sl][sel]
+        pixels = (rr + sl[0].start) * cloud.shape[1] + (cc + sl[1].start)
+        out.append(Candidate(sl, region, None, pts, cloud.sigma_line[sl][sel], grad, view,
+                             pixels))
     return out
