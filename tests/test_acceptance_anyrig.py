@@ -28,9 +28,10 @@ _BIN = 8
 _PICK = (3, 12, 20)
 
 #: |max| (um) of each characteristic on each rig here (true rig, seed 1, bin 8, one
-#: position each); the test allows twice that. The stereo PS carries the open stereo
-#: bias of issue 11: the sphere comes out too large, more so with coarser pixels (PS
-#: +13..+24 um at bin 4 over the 10 positions, +65 um here).
+#: position each); the test allows twice that. The stereo PS carries the cameras'
+#: point-spread bias of the points (docs/acceptance.md, "PS and the cameras' point
+#: spread"): the sphere comes out too large, more so with coarser pixels (PS +13..+24 um
+#: at bin 4 over the 10 positions, +65 um here).
 _SEEN_UM = {
     "mixed": {"PF": 29.7, "PS": 6.0, "SD": 3.7, "F": 31.2},
     "macro": {"PF": 29.3, "PS": 9.7, "SD": 4.3, "F": 29.0},
