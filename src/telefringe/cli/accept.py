@@ -117,8 +117,12 @@ def _table(result):
     from rich.table import Table
 
     t = Table(title="VDI/VDE 2634-2 acceptance test (mm; U: expanded uncertainty of the "
-                    "test, k = 2)")
-    for col in ("characteristic", "position", "value", "U", "cap half-angle", "decision"):
+                    "test, k = 2; *: PS differs from the point-spread model's size)")
+    cols = ["characteristic", "position", "value", "U", "cap half-angle", "decision"]
+    spread = any(p.spread is not None for p in result.positions)
+    if spread:  # the test spheres' size error through the cameras' point-spread model
+        cols.insert(4, "point-spread model")
+    for col in cols:
         t.add_column(col, justify="left" if col in ("characteristic", "position") else "right")
     by_name = {p.name: p for p in result.positions}
     for q, qr in result.quantities.items():
@@ -130,11 +134,19 @@ def _table(result):
                 cap = " / ".join(f"{s.cap_half_angle_deg:.0f}" for s in test.spheres) + " deg"
             else:
                 cap = ""
-            t.add_row(q if k == 0 else "", name, f"{qr.values[k]:+.4f}", f"{qr.U[k]:.4f}", cap,
-                      qr.decisions[k] if qr.decisions else "")
+            row = [q if k == 0 else "", name, f"{qr.values[k]:+.4f}", f"{qr.U[k]:.4f}", cap,
+                   qr.decisions[k] if qr.decisions else ""]
+            if spread:
+                sp = by_name[name].spread
+                row.insert(4, "" if q != "PS" or sp is None else
+                           f"{sp.PS:+.4f}{' *' if by_name[name].spread_bias() else ''}")
+            t.add_row(*row)
         mpe = f"MPE {qr.mpe:.4f}" if qr.mpe is not None else "no MPE"
-        t.add_row("", f"[bold]max ({qr.max_position})[/bold]", f"[bold]{qr.max_value:+.4f}",
-                  mpe, "", f"[bold]{qr.verdict}" if qr.verdict else "", end_section=True)
+        last = ["", f"[bold]max ({qr.max_position})[/bold]", f"[bold]{qr.max_value:+.4f}",
+                mpe, "", f"[bold]{qr.verdict}" if qr.verdict else ""]
+        if spread:
+            last.insert(4, "")
+        t.add_row(*last, end_section=True)
     return t
 
 
