@@ -301,8 +301,9 @@ def spread_probing_size(position: Position, cloud, artefacts: Artefacts, rig, im
     averages the fringes over its point spread, which on a curved surface moves every
     point along its line, inward near the top and outward toward the limb; a
     free-radius fit of a cap turns that into a too-large diameter. On the ``stereo``
-    preset binned 4 x 4 (true rig, 10 spheres) PS was +13.1 to +24.3 um for U 3.0-3.7 um
-    and the model's -6.0 to +5.6 um (mean +0.6) for its 2u 6.1-8.0 um; on the ``mixed``
+    preset binned 4 x 4 (true rig, 10 spheres) PS was +13.1 to +24.3 um for U 3.4-4.3 um
+    and the model's -6.0 to +5.6 um (mean +0.6) for its 2u 6.8-8.5 um (both with the
+    matches' correlated noise); on the ``mixed``
     rig -1.1 to +6.7 um (mean +2.5) and -4.7 to +5.2 um (mean +0.2)
     (``benchmarks/acceptance_ps_bias.py``).
 
