@@ -91,6 +91,8 @@ def _with_spread(pos, rec, rig_obj, cert, scan, scan_2, noise, failed: list):
     """The test sphere's position with its size through the cameras' point-spread model
     (:func:`~telefringe.metrology.acceptance.spread_probing_size`); unchanged, with its
     name added to ``failed``, where the rig or the scan cannot give the model."""
+    import numpy as np
+
     from telefringe.metrology._common import MetrologyError
     from telefringe.metrology.acceptance import spread_probing_size
     from telefringe.metrology.spheres import sphere_spread_options
@@ -107,7 +109,7 @@ def _with_spread(pos, rec, rig_obj, cert, scan, scan_2, noise, failed: list):
     try:
         return spread_probing_size(pos, rec.cloud, cert, rig, opts.pop("image"), noise=noise,
                                    **opts)
-    except (MetrologyError, ValueError) as exc:
+    except (MetrologyError, ValueError, np.linalg.LinAlgError) as exc:
         failed.append(pos.name)
         detail(f"{pos.name}: no point-spread model ({exc})")
         return pos
