@@ -2,7 +2,8 @@
 each rig, ``telefringe simulate acceptance`` (23 positions; a stereo rig renders both
 cameras) and ``telefringe accept`` with the true rig (no calibration error: what the
 measurement itself makes of the artefacts), then the maxima of PF, PS, SD and F and the
-range of PS over the spheres, in um.
+range of PS over the spheres, and of the test spheres' size error through the cameras'
+point-spread model with how many accept flags (docs/acceptance.md), in um.
 
     .venv/bin/python benchmarks/acceptance_anyrig.py [--rig mixed,macro,stereo] [--bin 4]
         [--seed 1] [--out DIR] [--gamma]
@@ -57,15 +58,19 @@ def main_(argv=None) -> None:
     root = a.out or Path(tempfile.mkdtemp(prefix="acceptance_anyrig_"))
     print(f"true rig, seed {a.seed}, cameras binned {a.bin} x {a.bin}; um; outputs in {root}")
     print(f"{'rig':8} {'PF':>7} {'PS':>7} {'SD':>7} {'F':>7}   PS range over the spheres"
-          "   cap half-angle")
+          "   through the point-spread model (flagged)   cap half-angle")
     for name in a.rig.split(","):
         t0 = time.perf_counter()
         res = run(name, a.bin, root / name, a.seed, a.gamma)
         ps = [p["value"] * 1e3 for p in res["PS"]["positions"]]
         caps = [p["cap_half_angle_deg"] for p in res["PS"]["positions"]]
+        sp = [p["spread_model"] for p in res["PS"]["positions"] if "spread_model" in p]
+        model = (f"{min(m['value'] for m in sp) * 1e3:+.1f} .. "
+                 f"{max(m['value'] for m in sp) * 1e3:+.1f} "
+                 f"({sum(m['differs_from_PS'] for m in sp)} of {len(sp)})" if sp else "-")
         print(f"{name:8} " + " ".join(f"{res[q]['max'] * 1e3:+7.1f}" for q in
                                       ("PF", "PS", "SD", "F"))
-              + f"   {min(ps):+.1f} .. {max(ps):+.1f}"
+              + f"   {min(ps):+.1f} .. {max(ps):+.1f}   {model}"
               + f"   {min(caps):.0f}-{max(caps):.0f} deg"
               + f"   ({time.perf_counter() - t0:.0f} s wall, machine shared)")
 

@@ -28,9 +28,10 @@ _BIN = 8
 _PICK = (3, 12, 20)
 
 #: |max| (um) of each characteristic on each rig here (true rig, seed 1, bin 8, one
-#: position each); the test allows twice that. The stereo PS carries the open stereo
-#: bias of issue 11: the sphere comes out too large, more so with coarser pixels (PS
-#: +13..+24 um at bin 4 over the 10 positions, +65 um here).
+#: position each); the test allows twice that. The stereo PS carries the cameras'
+#: point-spread bias of the points (docs/acceptance.md, "PS and the cameras' point
+#: spread"): the sphere comes out too large, more so with coarser pixels (PS +13..+24 um
+#: at bin 4 over the 10 positions, +65 um here).
 _SEEN_UM = {
     "mixed": {"PF": 29.7, "PS": 6.0, "SD": 3.7, "F": 31.2},
     "macro": {"PF": 29.3, "PS": 9.7, "SD": 4.3, "F": 29.0},
@@ -109,6 +110,16 @@ def test_accept_on_every_rig(name, tmp_path, capsys):
         "sphere_03", "ball_bar_02", "plane_03"]
     for q, v in got.items():
         assert v <= 2 * _SEEN_UM[name][q], (q, v)
+    sp = doc["PS"]["positions"][0]["spread_model"]
+    print(f"  PS through the point-spread model {sp['value'] * 1e3:+.1f} um, sigma "
+          f"{sp['u_fit_diameter'] * 1e3:.1f} um, differs from PS: {sp['differs_from_PS']}")
+    # accept fits every rig's test sphere through the cameras' point-spread model; at bin 8
+    # its size is within 3 sigma of zero (measured mixed +6.6 / 8.6, macro +2.8 / 9.1,
+    # stereo +22.8 / 23.3 um: with 130 points and a variance per camera the model cannot
+    # tell the stereo PS of +65 um from its own, so it is not flagged here; at bin 4 it
+    # is, tests/test_sphere_spread_stereo.py)
+    assert abs(sp["value"]) <= 3.0 * sp["u_fit_diameter"], sp
+    assert len(sp["psf_variance_px2"]) == (2 if name == "stereo" else 1)
 
 
 def test_a_set_must_suit_the_rig(tmp_path):

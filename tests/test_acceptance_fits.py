@@ -163,3 +163,25 @@ def test_artefact_regions_orders_left_to_right_and_erodes():
     assert a.sum() == 13 * 8 and b.sum() == 8 * 8  # one pixel off every border
     with pytest.raises(MetrologyError, match="found 2"):
         artefact_regions(m, 3, min_pixels=1)
+
+
+def test_spread_flag_compares_ps_with_the_model_within_their_fit_sigmas():
+    """A test sphere's PS is flagged as the points' blur bias when the point-spread
+    model's size error differs from it by more than 2 x the root sum of squares of the
+    two fits' sigmas; no model, no flag; the model is the test sphere's only."""
+    from dataclasses import replace
+
+    from telefringe.metrology.acceptance import Position, SpreadSize, spread_probing_size
+
+    rng = np.random.default_rng(3)
+    p, _ = sphere_reference(rng, np.array([1.0, 2.0, 50.0]), 2.5, 400, 60.0, 0.003)
+    t = probing_errors(p, 5.0)
+    pos = Position("s", "sphere", t, [np.zeros((400, 2), dtype=int)], (20, 20))
+    assert pos.spread_bias() is None
+    u = 2.0 * np.hypot(t.u_fit_diameter, 0.002)
+    near = replace(pos, spread=SpreadSize(t.PS - 0.99 * u, 0.002, 300, (0.3,)))
+    far = replace(pos, spread=SpreadSize(t.PS + 1.01 * u, 0.002, 300, (0.3,)))
+    assert near.spread_bias() is False and far.spread_bias() is True
+    bar = Position("b", "ball_bar", t, [], (20, 20))
+    with pytest.raises(MetrologyError, match="test sphere"):
+        spread_probing_size(bar, None, None, None, None)

@@ -206,6 +206,13 @@ def result_to_json(result, *, rig: str = "", folder: str = "") -> dict:
                 e.update(diameter=_f(t.diameter), cap_half_angle_deg=_f(t.cap_half_angle_deg),
                          n_points=t.n_points, n_excluded=t.n_excluded,
                          rms=_f(np.sqrt(np.mean(t.fit.residuals ** 2))))
+                sp = by_name[name].spread
+                if q == "PS" and sp is not None:
+                    e["spread_model"] = {"value": _f(sp.PS),
+                                         "u_fit_diameter": _f(sp.u_fit_diameter),
+                                         "n_points": sp.n_points,
+                                         "psf_variance_px2": [_f(v) for v in sp.variances_px2],
+                                         "differs_from_PS": by_name[name].spread_bias()}
             elif isinstance(t, SpacingTest):
                 e.update(distance=_f(t.distance),
                          cap_half_angle_deg=[_f(s.cap_half_angle_deg) for s in t.spheres],

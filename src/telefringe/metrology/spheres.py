@@ -1219,6 +1219,46 @@ def finest_fringe_periods(manifest) -> tuple[float, float] | None:
     return float(pu), float(pv)
 
 
+def measure_sphere_region(cloud: PointCloud, region, rig, image, *, image_2=None,
+                          fringe_periods=None, psf_variance=None, psf_shared: bool = False,
+                          max_view_deg: float = SPREAD_MAX_VIEW_DEG,
+                          noise=None) -> SphereMeasurement:
+    """The sphere of the points ``region`` selects, fitted through the cameras'
+    point-spread model as :func:`measure_sphere` fits the sphere it finds (a free sphere,
+    e.g. an acceptance test's, has no base plane to find it by).
+
+    Parameters
+    ----------
+    cloud : PointCloud (mm).
+    region : (rows, cols) bool, the sphere's pixels (already shrunk off its silhouette).
+    rig, image, image_2, fringe_periods, psf_variance, psf_shared, max_view_deg, noise :
+        as for :func:`measure_sphere`.
+
+    Returns
+    -------
+    SphereMeasurement (``base`` None, ``region`` "the given region").
+
+    Raises
+    ------
+    MetrologyError
+        A region of another shape than the cloud or of fewer than 4 valid points, or
+        what :func:`measure_sphere`'s model refuses.
+    """
+    sel = np.asarray(region, dtype=bool)
+    if sel.shape != cloud.shape:
+        raise MetrologyError(f"region has shape {sel.shape}, the cloud {cloud.shape}")
+    sel = sel & cloud.mask
+    if sel.sum() < 4:
+        raise MetrologyError(f"the region holds {int(sel.sum())} valid points: no sphere")
+    fit0 = fit_sphere(cloud.xyz[sel], robust=True)
+    fit, fitted, spread, terms, k_noise = _measure_with_spread(
+        cloud, sel, fit0, rig, image, image_2=image_2, fringe_periods=fringe_periods,
+        psf_variance=psf_variance, psf_shared=psf_shared, max_view_deg=max_view_deg,
+        noise=noise)
+    return SphereMeasurement(fit, None, "the given region", fitted, spread=spread,
+                             spread_terms=terms, spread_noise=k_noise)
+
+
 def sphere_spread_options(rig, image, shape, manifest=None, scan_2=None) -> dict:
     """:func:`measure_sphere`'s point-spread options for a reconstruction made with
     ``rig`` (what ``telefringe measure sphere --rig`` and ``telefringe batch --measure

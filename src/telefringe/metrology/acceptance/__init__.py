@@ -12,8 +12,10 @@ from telefringe.metrology.acceptance.evaluate import (
     Artefacts,
     Position,
     QuantityResult,
+    SpreadSize,
     artefact_regions,
     evaluate_position,
+    spread_probing_size,
     summarize,
 )
 from telefringe.metrology.acceptance.fits import LSPlane, LSSphere, ls_plane, ls_sphere
@@ -30,6 +32,7 @@ from telefringe.metrology.acceptance.quantities import (
 
 __all__ = ["ARTEFACT_KINDS", "DECISION_RULE", "EDGE_PX", "EXCLUDED_FRACTION", "QUANTITIES",
            "AcceptanceResult", "Artefacts", "FlatnessTest", "LSPlane", "LSSphere", "Position",
-           "QuantityResult", "SpacingTest", "SphereTest", "artefact_regions", "cap_half_angle",
-           "combine", "decide", "evaluate_position", "flatness_error", "ls_plane", "ls_sphere",
-           "probing_errors", "sphere_spacing_error", "summarize"]
+           "QuantityResult", "SpacingTest", "SphereTest", "SpreadSize", "artefact_regions",
+           "cap_half_angle", "combine", "decide", "evaluate_position", "flatness_error",
+           "ls_plane", "ls_sphere", "probing_errors", "sphere_spacing_error",
+           "spread_probing_size", "summarize"]

@@ -21,7 +21,8 @@ from telefringe.metrology.acceptance.quantities import (
 )
 
 __all__ = ["ARTEFACT_KINDS", "EDGE_PX", "QUANTITIES", "Artefacts", "Position", "QuantityResult",
-           "AcceptanceResult", "artefact_regions", "evaluate_position", "summarize"]
+           "AcceptanceResult", "SpreadSize", "artefact_regions", "evaluate_position",
+           "spread_probing_size", "summarize"]
 
 #: The artefacts of the test, as named in acceptance.json.
 ARTEFACT_KINDS = ("sphere", "ball_bar", "plane")
@@ -71,6 +72,28 @@ class Artefacts:
         raise KeyError(quantity)
 
 
+@dataclass(frozen=True)
+class SpreadSize:
+    """The test sphere's size error through the cameras' point-spread model: what PS
+    would be if the points were free of the blur's bias on the sphere's curvature
+    (:func:`spread_probing_size`). Reported beside PS, never in its place: PS is the
+    guideline's, the size error of the points the instrument gives.
+
+    Attributes
+    ----------
+    PS : float, mm, the model fit's diameter minus the calibrated one.
+    u_fit_diameter : float, mm, the model fit's standard uncertainty of the diameter (the
+        spread variances' uncertainty in it).
+    n_points : int, the points the model fitted (those facing the cameras).
+    variances_px2 : tuple of float, each camera's estimated spread variance, px^2.
+    """
+
+    PS: float
+    u_fit_diameter: float
+    n_points: int
+    variances_px2: tuple
+
+
 @dataclass(frozen=True, eq=False)
 class Position:
     """One scan of the test: its artefact, what was measured, and where (pixels).
@@ -89,6 +112,18 @@ class Position:
     test: SphereTest | SpacingTest | FlatnessTest
     pixels: list = field(default_factory=list)
     shape: tuple[int, int] = (0, 0)
+    spread: SpreadSize | None = None
+
+    def spread_bias(self) -> bool | None:
+        """The test sphere's PS and its point-spread model's differ by more than 2 x the
+        root sum of squares of their fit uncertainties (k = 2; the two fits share their
+        points, so the difference's true uncertainty is smaller and the flag errs on the
+        quiet side): the points' blur bias is a significant part of PS. None without the
+        model."""
+        if self.spread is None or self.kind != "sphere":
+            return None
+        u = np.hypot(self.test.u_fit_diameter, self.spread.u_fit_diameter)
+        return bool(abs(self.test.PS - self.spread.PS) > 2.0 * u)
 
     def value(self, quantity: str) -> float:
         t = self.test
@@ -253,6 +288,62 @@ def evaluate_position(name: str, kind: str, xyz, mask, artefacts: Artefacts, *,
     else:
         test = flatness_error(pts[0], exclude=exclude)
     return Position(name=name, kind=kind, test=test, pixels=pixels, shape=mask.shape)
+
+
+def spread_probing_size(position: Position, cloud, artefacts: Artefacts, rig, image, *,
+                        image_2=None, fringe_periods=None, noise=None) -> Position:
+    """The test sphere's size error through the cameras' point-spread model, added to
+    its position (``spread``).
+
+    The same points as PS (the eroded region) are fitted through the model of
+    :func:`telefringe.metrology.spheres.measure_sphere` (each camera's spread variance
+    estimated with the sphere; only points facing the cameras within 60 deg). A camera
+    averages the fringes over its point spread, which on a curved surface moves every
+    point along its line, inward near the top and outward toward the limb; a
+    free-radius fit of a cap turns that into a too-large diameter. On the ``stereo``
+    preset binned 4 x 4 (true rig, 10 spheres) PS was +13.1 to +24.3 um for U 3.4-4.3 um
+    and the model's -6.0 to +5.6 um (mean +0.6) for its 2u 6.8-8.5 um (both with the
+    matches' correlated noise); on the ``mixed``
+    rig -1.1 to +6.7 um (mean +2.5) and -4.7 to +5.2 um (mean +0.2)
+    (``benchmarks/acceptance_ps_bias.py``).
+
+    Parameters
+    ----------
+    position : Position of a test sphere (``kind`` "sphere").
+    cloud : PointCloud the position was evaluated on (mm).
+    artefacts : the certificate.
+    rig, image, image_2, fringe_periods, noise : as for
+        :func:`telefringe.metrology.spheres.measure_sphere` (one camera and the projector,
+        or two cameras and the projector; ``image`` the first camera's brightness).
+
+    Returns
+    -------
+    Position, with ``spread`` set.
+
+    Raises
+    ------
+    MetrologyError
+        Not a test sphere, or what the model refuses.
+    """
+    from dataclasses import replace
+
+    from telefringe.metrology.spheres import measure_sphere_region
+
+    if position.kind != "sphere":
+        raise MetrologyError(f"the point-spread size is the test sphere's, not a "
+                             f"{position.kind}'s")
+    region = np.zeros(position.shape, dtype=bool)
+    px = position.pixels[0]
+    region[px[:, 0], px[:, 1]] = True
+    m = measure_sphere_region(cloud, region, rig, image, image_2=image_2,
+                              fringe_periods=fringe_periods, noise=noise)
+    sp = m.spread
+    var = (sp.variance_px2,) if sp.variance_2_px2 is None else (sp.variance_px2,
+                                                                sp.variance_2_px2)
+    size = SpreadSize(PS=float(2.0 * m.sphere.radius - artefacts.sphere_diameter),
+                      u_fit_diameter=float(2.0 * m.sphere.sigma_radius),
+                      n_points=int(m.fitted.sum()), variances_px2=tuple(map(float, var)))
+    return replace(position, spread=size)
 
 
 def summarize(positions, artefacts: Artefacts, mpe: dict | None = None, *,
