@@ -23,12 +23,9 @@ def _h(x, orders):
     return out
 
 
-def test_one_compiled_evaluation_equals_its_definition():
-    """One Gauss-Newton evaluation (two compiled passes over every group and pair) against
-    its definition written out in NumPy: Newton inverses, gains 1 / (1 + e'), weights, the
-    errors-in-variables mean bias and Stein's sums (the harmonics whose dilution is too
-    large left uncorrected: some are, here), the normal equations. Same arithmetic in
-    another order: agreement to 1e-9 of the step."""
+def _ladder_case():
+    """A 1, 8, 64 ladder of 3000 random samples with random forward models (4 mrad) and
+    noise (5-40 mrad): (per, harm, offs, harm_arr, coef, samp, pairs, sig, models)."""
     rng = np.random.default_rng(11)
     per = [1, 8, 64]
     harm = [(4, 8, 12), (4, 8, 12, 16, 20, 24), (4, 8, 24)]
@@ -44,6 +41,17 @@ def test_one_compiled_evaluation_equals_its_definition():
         t = wrap(2 * np.pi * p * x)
         samp.append(wrap(t + m.error(t) + s * rng.standard_normal(n)))
     pairs = [(0, 1, 8, sig[0], sig[1], None, None), (1, 2, 8, sig[1], sig[2], None, None)]
+    return per, harm, offs, harm_arr, coef, samp, pairs, sig, models
+
+
+def test_one_compiled_evaluation_equals_its_definition():
+    """One Gauss-Newton evaluation (two compiled passes over every group and pair) against
+    its definition written out in NumPy: Newton inverses, gains 1 / (1 + e'), weights, the
+    errors-in-variables mean bias and Stein's sums (the harmonics whose dilution is too
+    large left uncorrected: some are, here), the normal equations. Same arithmetic in
+    another order: agreement to 1e-9 of the step."""
+    per, harm, offs, harm_arr, coef, samp, pairs, sig, models = _ladder_case()
+    n = samp[0].size
     # one evaluation gives the normal matrix; two give the step solved from it
     _, _, kept, ata, chi2 = nl._gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, 1,
                                              np.inf, tol=0.0, reject_first=False)
@@ -85,6 +93,36 @@ def test_one_compiled_evaluation_equals_its_definition():
     ridge = 1e-9 * np.trace(ata_ref) / n_par + 1e-300
     step_ref = np.linalg.solve(ata_ref + ridge * np.eye(n_par), atb_ref)
     np.testing.assert_allclose(step, step_ref, rtol=0, atol=1e-9 * np.abs(step_ref).max())
+
+
+def test_the_right_hand_side_alone_is_the_same_bit_for_bit():
+    """Newton's matrix by differences and its step acceptance evaluate the estimating
+    equations' right-hand side alone (no normal matrix, its O(n_par^2) per sample): the
+    same numbers, bit for bit, as the full evaluation's, and so the same Newton matrix as
+    by full evaluations (an iteration whose success can hang on small differences in that
+    matrix, e.g. the 3-step scan of test_nonlinearity_invertible, keeps its iterates)."""
+    per, harm, offs, harm_arr, coef, samp, pairs, *_ = _ladder_case()
+    lad = nl._Ladder(samp, per, harm, harm_arr, offs, pairs)
+    first = lad.evaluate(coef, 4.0, True)
+    assert not all(f.all() for f in first.fix)  # (some harmonics left uncorrected)
+    # (each evaluation starts the phases' inversion from the last one's: the same start)
+    warm = first.unwrapped
+    ev = lad.evaluate(coef, 0.0, False, keep=first.keep, fix=first.fix)
+    lad.start = warm
+    rhs = lad.evaluate(coef, 0.0, False, keep=first.keep, fix=first.fix, with_gram=False)
+    assert np.array_equal(rhs.atb, ev.atb) and rhs.chi2 == ev.chi2
+    assert not rhs.ata.any()
+    se = np.sqrt(ev.chi2 / (ev.n_keep - coef.size) * np.diag(np.linalg.inv(ev.ata)))
+    h = 1e-2 * se
+    by_full = np.empty((coef.size, coef.size))
+    lad.start = warm
+    for i in range(coef.size):
+        c = coef.copy()
+        c[i] += h[i]
+        by_full[:, i] = -(lad.evaluate(c, 0.0, False, keep=ev.keep, fix=ev.fix).atb
+                          - ev.atb) / h[i]
+    lad.start = warm
+    assert np.array_equal(nl._newton_matrix(lad, ev, h), by_full)
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,7 @@ mapping between sample points is refused."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from telefringe.fringes.nonlinearity import PhaseErrorModel
 
@@ -72,12 +73,15 @@ def test_a_three_step_scan_learns_its_gamma_without_a_traceback(tmp_path):
     scan, _ = render_scan(vr, plate_at_z(0.0), default_groups(vr, steps=3), seed=3)
     write_scan(tmp_path / "three", scan)
     out = tmp_path / "out"
-    # (this tiny plate's fit ran out of Gauss-Newton steps and warned; Newton's method now
-    # takes over where Gauss-Newton contracts slowly, and it converges: a warning would be
-    # an error here)
-    assert main(["reconstruct", str(tmp_path / "three"), "--rig",
-                 str(tmp_path / "rig.json"), "-o", str(out), "--no-ply",
-                 "--noise-model", "default"]) == 0
+    # this tiny plate's u fit does not converge, and says so: Newton's method takes over
+    # where Gauss-Newton contracts slowly, but its steps (85-550 standard errors in full)
+    # are damped to 0.1-3 % by its step acceptance, and such a damped step is no sign of
+    # convergence (one more Gauss-Newton step from the model returned moves a coefficient
+    # by 60 standard errors; the v fit converges, 4e-5)
+    with pytest.warns(RuntimeWarning, match=r"periods \[1, 8, 64\].*\(not converged\)"):
+        assert main(["reconstruct", str(tmp_path / "three"), "--rig",
+                     str(tmp_path / "rig.json"), "-o", str(out), "--no-ply",
+                     "--noise-model", "default"]) == 0
     pts = np.load(out / "points.npz")
     xyz, sz = pts["xyz"].reshape(-1, 3), pts["sigma_z"].ravel()
     ok = np.isfinite(xyz).all(axis=1) & np.isfinite(sz)

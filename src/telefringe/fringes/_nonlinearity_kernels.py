@@ -399,7 +399,8 @@ def _group_stein(w, g, curv, cp, sp, harm, nh, sel, d, acc):
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def ladder_normal_equations(est, gain, sig, pair_a, pair_b, ratio, res, wk, s2, harm,
-                            nharm, sel, fix_cos, fix_sin, divisor, kmax, ata, atb, stein):
+                            nharm, sel, fix_cos, fix_sin, divisor, kmax, ata, atb, stein,
+                            with_gram):
     """Every pair's normal equations of an errors-in-variables Gauss-Newton step in one
     pass (one parallel region; what ``nonlinearity._gauss_newton`` does), over the samples
     with weight ``wk > 0``. For pair p of groups (a, b) and ratio r:
@@ -422,7 +423,9 @@ def ladder_normal_equations(est, gain, sig, pair_a, pair_b, ratio, res, wk, s2, 
     of divisor[g], k = 0..kmax[g]; divisor, kmax : (G,) int64; ata : (P, W, W) float64,
     W >= 2 (nharm[a] + nharm[b]); atb : (P, W); stein : (P, 2, 2 H). Outputs are
     overwritten. Sums are taken in a fixed number of chunks (deterministic whatever the
-    thread count).
+    thread count). ``with_gram`` False leaves out ``ata`` (set to zero; the costly part,
+    O(W^2) per sample): ``atb`` and ``stein`` are the same, bit for bit (same sums in the
+    same order).
     """
     n_pairs = pair_a.size
     n = est.shape[1]
@@ -489,9 +492,10 @@ def ladder_normal_equations(est, gain, sig, pair_a, pair_b, ratio, res, wk, s2, 
                 for u in range(npar):
                     wu = w * row[u]
                     rp[u] += wu * tgt
-                    gu = gp[u]
-                    for v in range(u, npar):
-                        gu[v] += wu * row[v]
+                    if with_gram:
+                        gu = gp[u]
+                        for v in range(u, npar):
+                            gu[v] += wu * row[v]
                 _group_stein(w * r * r * sa2 * ga * ga, ga, curv_a, cpa, spa, harm[a], nha,
                              sel[a], da, acc[p, 0])
                 _group_stein(w * sb2 * gb * gb, gb, curv_b, cpb, spb, harm[b], nhb, sel[b],
