@@ -90,15 +90,20 @@ def rig_of(mix, shape=SHAPE) -> Rig:
 MIXES = ("tt", "tp", "pt", "pp")
 
 
+def pixel_lines(cam, shape):
+    """Every pixel's line of a (rows, cols) camera image: points o and unit directions d,
+    each (rows, cols, 3) (mm; read-only broadcasts where the camera gives one for all)."""
+    rows, cols = shape
+    v, u = np.mgrid[0:rows, 0:cols].astype(float)
+    o, d = cam.backproject(u, v)
+    return np.broadcast_to(o, shape + (3,)), np.broadcast_to(d, shape + (3,))
+
+
 def surface_truth(rig: Rig, shape=SHAPE, *, seed=0, depth=1.0):
     """True points on each camera pixel's line at random heights within +-depth mm of the
     plane z = 0, and their projector pixels (u_p, v_p)."""
     cam = rig.camera
-    rows, cols = shape
-    v, u = np.mgrid[0:rows, 0:cols].astype(float)
-    o, d = cam.backproject(u, v)
-    o = np.broadcast_to(o, shape + (3,))
-    d = np.broadcast_to(d, shape + (3,))
+    o, d = pixel_lines(cam, shape)
     rng = np.random.default_rng(seed)
     z = rng.uniform(-depth, depth, size=shape)
     s = (z - o[..., 2]) / d[..., 2]
@@ -135,11 +140,7 @@ def stereo_rig_of(kind, shape=SHAPE) -> Rig:
 def plane_hits(cam, shape, plane=(0.05, -0.03, 0.2)):
     """Points where each pixel's line meets the plane z = a x + b y + c (mm)."""
     a, b, c = plane
-    rows, cols = shape
-    v, u = np.mgrid[0:rows, 0:cols].astype(float)
-    o, d = cam.backproject(u, v)
-    o = np.broadcast_to(o, shape + (3,))
-    d = np.broadcast_to(d, shape + (3,))
+    o, d = pixel_lines(cam, shape)
     n = np.array([-a, -b, 1.0])
     s = (c - o @ n) / (d @ n)
     return o + s[..., None] * d
@@ -157,11 +158,7 @@ def stereo_truth(rig: Rig, shape=SHAPE, plane=(0.05, -0.03, 0.2)):
 def step_hits(cam, shape, h=1.5):
     """Where each pixel's line first meets a step: the plane z = h for x < 0, z = 0 for
     x >= 0 and the wall x = 0 between them (mm); the camera's occlusions are exact."""
-    rows, cols = shape
-    v, u = np.mgrid[0:rows, 0:cols].astype(float)
-    o, d = cam.backproject(u, v)
-    o = np.broadcast_to(o, shape + (3,))
-    d = np.broadcast_to(d, shape + (3,))
+    o, d = pixel_lines(cam, shape)
     with np.errstate(divide="ignore", invalid="ignore"):
         s_up = (h - o[..., 2]) / d[..., 2]
         s_lo = -o[..., 2] / d[..., 2]
@@ -195,11 +192,7 @@ def var_ratio_tol(n_runs, k=3.0):
 def ball_hits(cam, shape, centres, r):
     """Where each pixel's line first meets a BGA: spheres of radius ``r`` (mm) at
     ``centres`` (n, 3) on the substrate z = 0 (mm); the camera's occlusions are exact."""
-    rows, cols = shape
-    v, u = np.mgrid[0:rows, 0:cols].astype(float)
-    o, d = cam.backproject(u, v)
-    o = np.broadcast_to(o, shape + (3,))
-    d = np.broadcast_to(d, shape + (3,))
+    o, d = pixel_lines(cam, shape)
     with np.errstate(divide="ignore", invalid="ignore"):
         s = -o[..., 2] / d[..., 2]  # the substrate
         for c in np.asarray(centres, dtype=np.float64):
