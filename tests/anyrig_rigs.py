@@ -202,3 +202,31 @@ def ball_hits(cam, shape, centres, r):
             t = np.where(disc >= 0, -b - np.sqrt(np.where(disc >= 0, disc, 0.0)), np.inf)
             s = np.minimum(s, t)
     return o + s[..., None] * d
+
+
+def write_stereo_scan(tmp, scene, *, seed=3, binning=8):
+    """The "stereo" preset (binned ``binning``) scans ``scene``: writes the scan folders
+    ``tmp/s0/camera`` and ``tmp/s0/camera_2``, the true (bare) ``tmp/rig.json``, and the
+    folder ``reconstruct --second`` makes of them, ``tmp/one`` (no gamma correction, no
+    PLY). Returns (scans by camera name, the loaded rig.json)."""
+    import json
+
+    from telefringe.cli.reconstruct import reconstruct_to_folder
+    from telefringe.io.rig_json import bare_rig_json, load_rig
+    from telefringe.io.scan_json import write_scan
+    from telefringe.simulate.anyrig import scan_scene
+    from telefringe.simulate.presets import bin_camera_any, get_preset
+
+    vrig = bin_camera_any(get_preset("stereo"), binning)
+    scans, _ = scan_scene(vrig, scene, seed=seed)
+    names = vrig.rig.camera_names
+    assert names == ("camera", "camera_2")
+    (tmp / "s0").mkdir()
+    for n in names:
+        write_scan(tmp / "s0" / n, scans[n])
+    (tmp / "rig.json").write_text(json.dumps(bare_rig_json(vrig.rig)))
+    cal = load_rig(tmp / "rig.json")
+    reconstruct_to_folder(tmp / "s0" / names[0], cal, tmp / "one",
+                          second=tmp / "s0" / names[1], ply=False, gamma_correction=False,
+                          read=lambda f: scans[f.name])
+    return scans, cal

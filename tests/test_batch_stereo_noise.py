@@ -18,6 +18,7 @@ import json
 
 import numpy as np
 import pytest
+from anyrig_rigs import write_stereo_scan
 from test_stereo_noise_cli import stereo_folder  # noqa: F401 - the fixture
 
 from telefringe.batch import measure_many
@@ -32,25 +33,10 @@ def stereo_steps(tmp_path_factory):
     """The step gauge seen by both cameras, written as scan folders ``camera`` and
     ``camera_2`` with the true (bare) rig.json, and the folder ``reconstruct --second``
     makes of them."""
-    from telefringe.cli.reconstruct import reconstruct_to_folder
-    from telefringe.io.rig_json import bare_rig_json, load_rig
-    from telefringe.io.scan_json import write_scan
-    from telefringe.simulate.anyrig import scan_scene
-    from telefringe.simulate.presets import bin_camera_any, get_preset
     from telefringe.simulate.scenes import default_steps
 
     tmp = tmp_path_factory.mktemp("batch_stereo")
-    vrig = bin_camera_any(get_preset("stereo"), 8)
-    scans, _ = scan_scene(vrig, default_steps(), seed=3)
-    names = vrig.rig.camera_names
-    assert names == ("camera", "camera_2")
-    (tmp / "s0").mkdir()
-    for n in names:
-        write_scan(tmp / "s0" / n, scans[n])
-    (tmp / "rig.json").write_text(json.dumps(bare_rig_json(vrig.rig)))
-    reconstruct_to_folder(tmp / "s0" / names[0], load_rig(tmp / "rig.json"), tmp / "one",
-                          second=tmp / "s0" / names[1], ply=False, gamma_correction=False,
-                          read=lambda f: scans[f.name])
+    write_stereo_scan(tmp, default_steps(), seed=3)
     return tmp
 
 

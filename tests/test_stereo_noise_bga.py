@@ -14,7 +14,7 @@ import warnings
 
 import numpy as np
 import pytest
-from anyrig_rigs import ball_hits, stereo_rig_of
+from anyrig_rigs import ball_hits, stereo_rig_of, write_stereo_scan
 from anyrig_rigs import noisy_coords as _coords
 from anyrig_rigs import var_ratio_tol as _var_ratio_tol
 
@@ -128,31 +128,15 @@ def stereo_bga(tmp_path_factory):
     binning) rendered by both cameras, written as scan folders ``s0/camera`` and
     ``s0/camera_2`` with the true (bare) rig.json, and the folder ``reconstruct
     --second`` makes of them (no gamma correction: a fast test)."""
-    from telefringe.cli.reconstruct import reconstruct_to_folder
-    from telefringe.io.rig_json import bare_rig_json, load_rig
-    from telefringe.io.scan_json import write_scan
-    from telefringe.simulate.anyrig import scan_scene
-    from telefringe.simulate.presets import bin_camera_any, get_preset
     from telefringe.simulate.scenes import BGA
 
     tmp = tmp_path_factory.mktemp("stereo_bga")
-    vrig = bin_camera_any(get_preset("stereo"), 8)
     p = _RENDERED["pitch"]
     scene = BGA(rows=3, cols=4, pitch=p, ball_diameter=4.0, ball_height=2.0,
                 ball_specular=0.0, ball_albedo=0.5,
                 origin=np.array([15.0 - 1.5 * p, 11.7 - p]),
                 height_offsets=np.random.default_rng(1).normal(0, 0.02, (3, 4)))
-    scans, _ = scan_scene(vrig, scene, seed=3)
-    names = vrig.rig.camera_names
-    assert names == ("camera", "camera_2")
-    (tmp / "s0").mkdir()
-    for n in names:
-        write_scan(tmp / "s0" / n, scans[n])
-    (tmp / "rig.json").write_text(json.dumps(bare_rig_json(vrig.rig)))
-    cal = load_rig(tmp / "rig.json")
-    reconstruct_to_folder(tmp / "s0" / names[0], cal, tmp / "one",
-                          second=tmp / "s0" / names[1], ply=False, gamma_correction=False,
-                          read=lambda f: scans[f.name])
+    scans, cal = write_stereo_scan(tmp, scene, seed=3)
     return tmp, scans, cal
 
 
