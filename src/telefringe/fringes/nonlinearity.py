@@ -495,8 +495,40 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
         pairs.append((a, b, r, sa, sb, ka, kb))
 
     final_notes = len(notes)  # where the notes of the fit whose models are the result begin
+    # Gauss-Newton first; where it does not converge, a restart from the lowest orders
+    # (see _continuation), and only where that fails too Newton's method on every harmonic
+    first: list[str] = []
     models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject,
-                                     notes=notes)
+                                     notes=first, newton=False)
+    if cov is None or not any(x.endswith(_NOT_CONVERGED) for x in first):
+        notes += first
+    else:
+        notes += [x for x in first
+                  if not (x.endswith(_NOT_CONVERGED) or x.startswith(_OUT_OF_STEPS))]
+        low = (_continuation(samp, per, harm, pairs, iterations, reject, max_inflation)
+               if np.isfinite(max_inflation) else None)
+        refit: list[str] = []
+        if low is not None:
+            pruned, left, start = low
+            fit = _solve(samp, per, pruned, pairs, iterations, reject, start=start,
+                         notes=refit)
+        if low is not None and not any(x.endswith(_NOT_CONVERGED) for x in refit):
+            notes.append("Gauss-Newton on every harmonic did not converge: restarted from "
+                         f"a fit of each group's lowest orders {[h[:2] for h in harm]}")
+            for g, m, vif in left:
+                notes.append(f"periods {per[g]}: harmonic {m} not learned, at the fit of "
+                             f"the lowest orders the phase covers {coverage[g]:.0%} of its "
+                             "circle (10-degree bins) too unevenly to tell it from the "
+                             f"lower harmonics (variance inflation {vif:.3g} > "
+                             f"{max_inflation:g})")
+            harm = pruned
+            final_notes = len(notes)
+            notes += refit
+            models, rms, nkeep, cov = fit
+        else:
+            final_notes = len(notes)
+            models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject,
+                                             notes=notes)
     if cov is not None and np.isfinite(max_inflation):
         pruned, worst = _identifiable(cov, harm, max_inflation)
         for g, m, vif in worst:
@@ -580,6 +612,57 @@ def _conditioned_start(models, cov, harm, kept):
         out.append(PhaseErrorModel(m.periods, tuple(h[j] for j in sel), c[sel].copy(),
                                    s_[sel].copy()))
     return out
+
+
+def _continuation(samp, per, harm, pairs, iterations, reject, max_inflation):
+    """A restart for a fit of the harmonics ``harm`` (per group) that did not converge:
+    fits each group's two lowest orders (the bulk of a gamma error, N and 2N), then
+    judges every harmonic's variance inflation (:func:`_identifiable`, ``max_inflation``)
+    with the normal matrix of the ladder at that fit (the other harmonics zero). Returns
+    (harmonics per group kept, [(group, order, inflation)] left out, the low-order models:
+    the refit's start), or None when the low-order fit is all of ``harm`` or did not
+    converge itself.
+
+    Why: the inflation depends on where it is taken. The true phases and gains come from
+    the model, and a strong error (a 3-step scan's, slopes 1 + e' down to 0.3) reshapes
+    them: on a 120 x 100 px crop whose 1-period phase covers 28 % of its circle, that
+    group's orders 3-15 have inflations 1e4-7e6 at the solution but below 100 at the
+    linear start. The fit of every harmonic then takes steps along those nearly
+    collinear combinations that would make the model non-invertible (its slope down to
+    -36), halved ~2^10-fold, and runs out of steps (the pruning after it, judged on that
+    iterate, then kept and dropped the wrong harmonics and the refit stalled in turn)."""
+    low = [list(h[:2]) for h in harm]
+    if low == [list(h) for h in harm]:
+        return None
+    scratch: list[str] = []
+    start, _, _, cov = _solve(samp, per, low, pairs, iterations, reject, notes=scratch)
+    if cov is None or any(x.endswith(_NOT_CONVERGED) for x in scratch):
+        return None
+    offs = np.cumsum([0] + [2 * len(h) for h in harm])
+    n_par = int(offs[-1])
+    harm_arr = [np.asarray(h, dtype=np.int64) for h in harm]
+    coef = _start_coefficients(start, harm, offs, per)
+    ev = _Ladder(samp, per, harm, harm_arr, offs, pairs).evaluate(coef, reject, True)
+    normal = ev.ata + 1e-9 * np.trace(ev.ata) / n_par * np.eye(n_par)
+    cols = [(g, m) for g, h in enumerate(harm) for m in h for _ in (0, 1)]
+    live = np.array([m in low[g] for g, m in cols], dtype=bool)
+    left = []
+    # the higher orders in increasing order (a gamma error's series falls off with the
+    # order), each kept when every inflation stays within max_inflation with it
+    for m, g in sorted((m, g) for g, h in enumerate(harm) for m in h if m not in low[g]):
+        trial = live | np.array([c == (g, m) for c in cols], dtype=bool)
+        sub = normal[np.ix_(trial, trial)]
+        try:
+            vif = float(np.max(np.diag(np.linalg.inv(sub)) * np.diag(sub)))
+        except np.linalg.LinAlgError:
+            vif = np.inf
+        if vif <= max_inflation:
+            live = trial
+        else:
+            left.append((g, m, vif))
+    kept = [[m for m in h if (g, m) not in {(a, b) for a, b, _ in left}]
+            for g, h in enumerate(harm)]
+    return kept, left, start
 
 
 def _coverage(phase) -> float:
@@ -707,7 +790,7 @@ def _invertible_start(coef, per, harm, offs, notes, what):
     return np.zeros(int(offs[-1]))
 
 
-def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
+def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None, newton=True):
     """Gauss-Newton fit of the forward models; returns (models, rms, samples kept,
     covariance of the coefficients or None).
 
@@ -723,7 +806,9 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
     fixed point (the least-squares solution over all samples) is the same. ``start``
     (one PhaseErrorModel per group, e.g. a fit with more harmonics) gives the starting
     coefficients of the harmonics it has. Fallbacks (a zero start, a stalled step) are
-    reported as lines appended to ``notes`` (a list) when given.
+    reported as lines appended to ``notes`` (a list) when given. ``newton`` False keeps to
+    Gauss-Newton (no switch to Newton's method where it contracts slowly, see
+    :func:`_gauss_newton`).
     """
     offs = np.cumsum([0] + [2 * len(h) for h in harm])
     n_par = int(offs[-1])
@@ -741,7 +826,8 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
         coef = (_initial(sub, per, harm, harm_arr, offs, sub_pairs, notes) if start is None
                 else _start_coefficients(start, harm, offs, per, notes))
         coef = _gauss_newton(sub, per, harm, harm_arr, offs, sub_pairs, coef, max_it, reject,
-                             tol=1e-6, reject_first=False, notes=notes)[0]
+                             tol=1e-6, reject_first=False, notes=notes,
+                             use_newton=newton)[0]
     else:
         coef = (_initial(samp, per, harm, harm_arr, offs, pairs, notes) if start is None
                 else _start_coefficients(start, harm, offs, per, notes))
@@ -751,7 +837,7 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
     coef, rms, total_keep, ata, chi2 = _gauss_newton(samp, per, harm, harm_arr, offs, pairs,
                                                      coef, max_it, reject, tol=1e-7,
                                                      reject_first=good_start, notes=notes,
-                                                     final=True)
+                                                     final=True, use_newton=newton)
     models = _models(per, harm, offs, coef)
     s2 = chi2 / max(total_keep - n_par, 1)
     ridge = 1e-9 * np.trace(ata) / n_par + 1e-300
@@ -961,7 +1047,7 @@ def _accept_newton(lad, back, jac, full, lam, per, harm, offs):
 
 
 def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, *, tol,
-                  reject_first, notes=None, final=False):
+                  reject_first, notes=None, final=False, use_newton=True):
     """Iterations of :func:`_solve` from ``coef``; returns (coef, rms, samples kept, normal
     matrix, chi2) of the last evaluated iterate. Outliers are rejected from the first
     iteration on when ``reject_first`` (a good start), else from the second. With
@@ -1024,7 +1110,7 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
     budget = max_it - 1  # steps allowed (Newton's method gets max_it - 1 of its own)
     jac = None  # Newton's matrix -dU/dc once the iteration is switched to it, else None
     lam, full, back = 1.0, 0.0, None  # Newton's damping, its full step's size, way back
-    allow = True  # Newton's method may be switched to
+    allow = use_newton  # Newton's method may be switched to
     ev = lad.evaluate(coef, reject, reject_first)
     while True:
         ata, atb, chi2, rms, total_keep = ev.ata, ev.atb, ev.chi2, ev.rms, ev.n_keep
@@ -1062,6 +1148,7 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
                 full = float(np.max(np.abs(newton) / se))
                 back = (coef, ev, se, newton)
                 step = lam * newton
+        whole = step  # (the step before any halving)
         for _ in range(20):  # keep the model invertible (halve the step if need be)
             trial = _models(per, harm, offs, coef + step)
             if all(m.invertible for m in trial):
@@ -1085,13 +1172,20 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         size = float(np.max(np.abs(step) / se))
         q = size / last if last > 0 else np.inf
         # (a damped Newton step is short because it is damped, not because the root is
-        # near: the test takes the full step, and its contraction from the last full step)
+        # near: the test takes the full step, and its contraction from the last full step;
+        # so for a Gauss-Newton step halved to keep the model invertible: a 3-step crop's
+        # fit, its steps halved 2^7-2^26-fold, passed the tests 50 standard errors from
+        # its root)
         damped = jac is not None and newton is not None and lam < 1.0
-        gap, cq = (full if damped else size), np.inf
+        if damped:
+            gap, move = full, float(np.max(np.abs(newton)))
+        else:
+            gap = float(np.max(np.abs(whole) / se))
+            move = float(np.max(np.abs(whole)))
+        cq = np.inf
         if last_full > 0:
             cq = gap / last_full
         last, last_full = size, gap
-        move = float(np.max(np.abs(newton))) if damped else float(np.max(np.abs(step)))
         if (move < tol or gap <= _REMAINING
                 or (cq <= _MAX_CONTRACTION and cq / (1.0 - cq) * gap <= _REMAINING)):
             break
