@@ -92,6 +92,8 @@ _WARN_LAST_STEP = 0.25
 _NOT_CONVERGED = "(not converged)"
 #: how the note of a fit that ran out of Gauss-Newton steps begins
 _OUT_OF_STEPS = "Gauss-Newton took its"
+#: how the note of a fit stopped for a restart (see :func:`_gauss_newton`) begins
+_HALVED = "Gauss-Newton stalled, its steps halved to keep the model invertible"
 
 #: largest move (in standard errors) of a coefficient by the linearised start of a refit
 #: (see :func:`_conditioned_start`)
@@ -495,31 +497,30 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
         pairs.append((a, b, r, sa, sb, ka, kb))
 
     final_notes = len(notes)  # where the notes of the fit whose models are the result begin
-    # Gauss-Newton first; where it does not converge, a restart from the lowest orders
-    # (see _continuation), and only where that fails too Newton's method on every harmonic
+    # where Gauss-Newton stalls with steps it had to halve to keep the models invertible,
+    # harmonics the data cannot tell apart at the solution are in (see _continuation):
+    # they are left out, judged at a fit of the lowest orders, and the rest fitted from
+    # there; where that fails too, or Gauss-Newton stalls otherwise, Newton's method
     first: list[str] = []
     models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject,
-                                     notes=first, newton=False)
-    if cov is None or not any(x.endswith(_NOT_CONVERGED) for x in first):
+                                     notes=first, restart=bool(np.isfinite(max_inflation)))
+    if not any(x.startswith(_HALVED) for x in first):
         notes += first
     else:
-        notes += [x for x in first
-                  if not (x.endswith(_NOT_CONVERGED) or x.startswith(_OUT_OF_STEPS))]
-        low = (_continuation(samp, per, harm, pairs, iterations, reject, max_inflation)
-               if np.isfinite(max_inflation) else None)
+        notes += [x for x in first if not x.startswith(_HALVED)]
+        low = _continuation(samp, per, harm, pairs, iterations, reject, max_inflation)
         refit: list[str] = []
         if low is not None:
             pruned, left, start = low
             fit = _solve(samp, per, pruned, pairs, iterations, reject, start=start,
                          notes=refit)
         if low is not None and not any(x.endswith(_NOT_CONVERGED) for x in refit):
-            notes.append("Gauss-Newton on every harmonic did not converge: restarted from "
-                         f"a fit of each group's lowest orders {[h[:2] for h in harm]}")
             for g, m, vif in left:
-                notes.append(f"periods {per[g]}: harmonic {m} not learned, at the fit of "
-                             f"the lowest orders the phase covers {coverage[g]:.0%} of its "
-                             "circle (10-degree bins) too unevenly to tell it from the "
-                             f"lower harmonics (variance inflation {vif:.3g} > "
+                notes.append(f"periods {per[g]}: harmonic {m} not learned: Gauss-Newton on "
+                             "every harmonic stalled, and at the fit of the lowest orders "
+                             f"{[h[:2] for h in harm]} the phase covers {coverage[g]:.0%} "
+                             "of its circle (10-degree bins) too unevenly to tell it from "
+                             f"the lower harmonics (variance inflation {vif:.3g} > "
                              f"{max_inflation:g})")
             harm = pruned
             final_notes = len(notes)
@@ -790,7 +791,8 @@ def _invertible_start(coef, per, harm, offs, notes, what):
     return np.zeros(int(offs[-1]))
 
 
-def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None, newton=True):
+def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None,
+           restart=False):
     """Gauss-Newton fit of the forward models; returns (models, rms, samples kept,
     covariance of the coefficients or None).
 
@@ -806,9 +808,8 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None, n
     fixed point (the least-squares solution over all samples) is the same. ``start``
     (one PhaseErrorModel per group, e.g. a fit with more harmonics) gives the starting
     coefficients of the harmonics it has. Fallbacks (a zero start, a stalled step) are
-    reported as lines appended to ``notes`` (a list) when given. ``newton`` False keeps to
-    Gauss-Newton (no switch to Newton's method where it contracts slowly, see
-    :func:`_gauss_newton`).
+    reported as lines appended to ``notes`` (a list) when given. ``restart``: see
+    :func:`_gauss_newton`.
     """
     offs = np.cumsum([0] + [2 * len(h) for h in harm])
     n_par = int(offs[-1])
@@ -826,8 +827,7 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None, n
         coef = (_initial(sub, per, harm, harm_arr, offs, sub_pairs, notes) if start is None
                 else _start_coefficients(start, harm, offs, per, notes))
         coef = _gauss_newton(sub, per, harm, harm_arr, offs, sub_pairs, coef, max_it, reject,
-                             tol=1e-6, reject_first=False, notes=notes,
-                             use_newton=newton)[0]
+                             tol=1e-6, reject_first=False, notes=notes)[0]
     else:
         coef = (_initial(samp, per, harm, harm_arr, offs, pairs, notes) if start is None
                 else _start_coefficients(start, harm, offs, per, notes))
@@ -837,7 +837,7 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None, n
     coef, rms, total_keep, ata, chi2 = _gauss_newton(samp, per, harm, harm_arr, offs, pairs,
                                                      coef, max_it, reject, tol=1e-7,
                                                      reject_first=good_start, notes=notes,
-                                                     final=True, use_newton=newton)
+                                                     final=True, restart=restart)
     models = _models(per, harm, offs, coef)
     s2 = chi2 / max(total_keep - n_par, 1)
     ridge = 1e-9 * np.trace(ata) / n_par + 1e-300
@@ -1047,7 +1047,7 @@ def _accept_newton(lad, back, jac, full, lam, per, harm, offs):
 
 
 def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, *, tol,
-                  reject_first, notes=None, final=False, use_newton=True):
+                  reject_first, notes=None, final=False, restart=False):
     """Iterations of :func:`_solve` from ``coef``; returns (coef, rms, samples kept, normal
     matrix, chi2) of the last evaluated iterate. Outliers are rejected from the first
     iteration on when ``reject_first`` (a good start), else from the second. With
@@ -1110,7 +1110,8 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
     budget = max_it - 1  # steps allowed (Newton's method gets max_it - 1 of its own)
     jac = None  # Newton's matrix -dU/dc once the iteration is switched to it, else None
     lam, full, back = 1.0, 0.0, None  # Newton's damping, its full step's size, way back
-    allow = use_newton  # Newton's method may be switched to
+    allow = True  # Newton's method may be switched to
+    halved = 0  # Gauss-Newton's steps halved to keep the model invertible (halvings)
     ev = lad.evaluate(coef, reject, reject_first)
     while True:
         ata, atb, chi2, rms, total_keep = ev.ata, ev.atb, ev.chi2, ev.rms, ev.n_keep
@@ -1132,6 +1133,13 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         if (allow and jac is None and last > 0 and size > _SLOW_CONTRACTION * last
                 and size > _WARN_LAST_STEP):
             # Gauss-Newton contracts too slowly or not at all: on to Newton's method
+            if restart and halved and final:
+                # (or, its steps having been halved to stay invertible, to a restart)
+                if notes is not None:
+                    notes.append(f"{_HALVED} ({halved} halvings in {taken} steps; the next "
+                                 f"moves a coefficient by {size:.3g} of its standard "
+                                 f"errors) {_NOT_CONVERGED}")
+                break
             jac, budget = np.empty(0), taken + max_it - 1
         if jac is not None:
             try:
@@ -1156,6 +1164,8 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
             step = 0.5 * step
             if jac is not None:
                 lam *= 0.5
+            else:
+                halved += 1
         else:
             if notes is not None:
                 notes.append(f"Gauss-Newton stopped at iteration {taken + 1}: no step kept "
