@@ -418,7 +418,11 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
         on an even phase coverage). On an uneven coverage a harmonic's basis functions are
         nearly a combination of the others (and of the unobservable common shift), so the
         data cannot tell it apart: it is left out, worst first, and the result's
-        ``warnings`` say so. ``inf`` keeps every harmonic.
+        ``warnings`` say so. ``inf`` keeps every harmonic. Where Gauss-Newton on every
+        harmonic stalls with steps halved to keep the models invertible, the inflations
+        are first judged at a fit of each group's two lowest orders, the higher orders
+        added lowest first while within ``max_inflation``, and the fit goes on from there
+        (Newton's method on every harmonic where that does not converge either).
 
     Returns
     -------
@@ -625,13 +629,19 @@ def _continuation(samp, per, harm, pairs, iterations, reject, max_inflation):
     converge itself.
 
     Why: the inflation depends on where it is taken. The true phases and gains come from
-    the model, and a strong error (a 3-step scan's, slopes 1 + e' down to 0.3) reshapes
+    the model, and a strong error (a 3-step scan's, slopes 1 + e' down to 0.33) reshapes
     them: on a 120 x 100 px crop whose 1-period phase covers 28 % of its circle, that
-    group's orders 3-15 have inflations 1e4-7e6 at the solution but below 100 at the
-    linear start. The fit of every harmonic then takes steps along those nearly
-    collinear combinations that would make the model non-invertible (its slope down to
-    -36), halved ~2^10-fold, and runs out of steps (the pruning after it, judged on that
-    iterate, then kept and dropped the wrong harmonics and the refit stalled in turn)."""
+    group's orders 3-18 have inflations 8e3-7e6 near the solution but all below 100 at the
+    linear start (:func:`_initial`). The fit of every harmonic then takes steps along
+    those nearly collinear combinations that would make the model non-invertible (its
+    slope down to -36), halved 2^7-fold and more; Newton's method after it wandered where
+    the 1-period model was nearly non-invertible (gains up to 20, residual RMS 0.54 rad,
+    5x the noise) and the equations are not smooth on the scale of a standard error, and
+    ran out of steps (the pruning after it, judged on that iterate, then dropped the
+    finest group's well-determined harmonic 3, and the refit stalled in turn). Adding
+    orders lowest first keeps the ones that carry the error (dropping the worst-inflated
+    one first, as :func:`_identifiable` does, dropped order 6 here, whose coefficient
+    is 0.03-0.05 rad, and the refit did not converge)."""
     low = [list(h[:2]) for h in harm]
     if low == [list(h) for h in harm]:
         return None
@@ -1095,7 +1105,14 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
     errors). A matrix by differences costs one evaluation of the equations per
     coefficient (~20): the window's two fits took 10 and 36 s of CPU (2.6 and 4.3 s when
     Gauss-Newton ran out of steps), only where Gauss-Newton stalls (on the full paper scan
-    measured it never does: the same iterates as before, bit for bit)."""
+    measured it never does: the same iterates as before, bit for bit).
+
+    ``restart`` (with ``final``): where Gauss-Newton stalls as above after steps it had to
+    halve to keep the model invertible, it stops instead, with a note beginning
+    :data:`_HALVED` (and ending :data:`_NOT_CONVERGED`): the sign of harmonics the data
+    cannot tell apart at the solution, which :func:`fit_phase_errors` then leaves out
+    (:func:`_continuation`) rather than take Newton's method into them. A halved step's
+    convergence tests take its size before halving."""
     n_par = int(offs[-1])
     lad = _Ladder(samp, per, harm, harm_arr, offs, pairs)
     rms = chi2 = 0.0
