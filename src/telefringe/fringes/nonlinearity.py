@@ -620,13 +620,14 @@ def _conditioned_start(models, cov, harm, kept):
 
 
 def _continuation(samp, per, harm, pairs, iterations, reject, max_inflation):
-    """A restart for a fit of the harmonics ``harm`` (per group) that did not converge:
-    fits each group's two lowest orders (the bulk of a gamma error, N and 2N), then
-    judges every harmonic's variance inflation (:func:`_identifiable`, ``max_inflation``)
-    with the normal matrix of the ladder at that fit (the other harmonics zero). Returns
-    (harmonics per group kept, [(group, order, inflation)] left out, the low-order models:
-    the refit's start), or None when the low-order fit is all of ``harm`` or did not
-    converge itself.
+    """A restart for a fit of the harmonics ``harm`` (per group) where Gauss-Newton
+    stalled with halved steps: fits each group's two lowest orders (the bulk of a gamma
+    error, N and 2N), then, with the normal matrix of the ladder at that fit (the other
+    harmonics zero), adds the higher orders lowest first, each kept when every variance
+    inflation (as in :func:`_identifiable`) stays within ``max_inflation`` with it.
+    Returns (harmonics per group kept, [(group, order, inflation)] left out, the
+    low-order models: the refit's start), or None when the low-order fit is all of
+    ``harm`` or did not converge itself.
 
     Why: the inflation depends on where it is taken. The true phases and gains come from
     the model, and a strong error (a 3-step scan's, slopes 1 + e' down to 0.33) reshapes
