@@ -92,6 +92,8 @@ _WARN_LAST_STEP = 0.25
 _NOT_CONVERGED = "(not converged)"
 #: how the note of a fit that ran out of Gauss-Newton steps begins
 _OUT_OF_STEPS = "Gauss-Newton took its"
+#: how the note of a fit stopped for a restart (see :func:`_gauss_newton`) begins
+_HALVED = "Gauss-Newton stalled, its steps halved to keep the model invertible"
 
 #: largest move (in standard errors) of a coefficient by the linearised start of a refit
 #: (see :func:`_conditioned_start`)
@@ -416,7 +418,11 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
         on an even phase coverage). On an uneven coverage a harmonic's basis functions are
         nearly a combination of the others (and of the unobservable common shift), so the
         data cannot tell it apart: it is left out, worst first, and the result's
-        ``warnings`` say so. ``inf`` keeps every harmonic.
+        ``warnings`` say so. ``inf`` keeps every harmonic. Where Gauss-Newton on every
+        harmonic stalls with steps halved to keep the models invertible, the inflations
+        are first judged at a fit of each group's two lowest orders, the higher orders
+        added lowest first while within ``max_inflation``, and the fit goes on from there
+        (Newton's method on every harmonic where that does not converge either).
 
     Returns
     -------
@@ -495,8 +501,39 @@ def fit_phase_errors(phases: Sequence, periods: Sequence[int], *, steps: Sequenc
         pairs.append((a, b, r, sa, sb, ka, kb))
 
     final_notes = len(notes)  # where the notes of the fit whose models are the result begin
+    # where Gauss-Newton stalls with steps it had to halve to keep the models invertible,
+    # harmonics the data cannot tell apart at the solution are in (see _continuation):
+    # they are left out, judged at a fit of the lowest orders, and the rest fitted from
+    # there; where that fails too, or Gauss-Newton stalls otherwise, Newton's method
+    first: list[str] = []
     models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject,
-                                     notes=notes)
+                                     notes=first, restart=bool(np.isfinite(max_inflation)))
+    if not any(x.startswith(_HALVED) for x in first):
+        notes += first
+    else:
+        notes += [x for x in first if not x.startswith(_HALVED)]
+        low = _continuation(samp, per, harm, pairs, iterations, reject, max_inflation)
+        refit: list[str] = []
+        if low is not None:
+            pruned, left, start = low
+            fit = _solve(samp, per, pruned, pairs, iterations, reject, start=start,
+                         notes=refit)
+        if low is not None and not any(x.endswith(_NOT_CONVERGED) for x in refit):
+            for g, m, vif in left:
+                notes.append(f"periods {per[g]}: harmonic {m} not learned: Gauss-Newton on "
+                             "every harmonic stalled, and at the fit of the lowest orders "
+                             f"{[h[:2] for h in harm]} the phase covers {coverage[g]:.0%} "
+                             "of its circle (10-degree bins) too unevenly to tell it from "
+                             f"the lower harmonics (variance inflation {vif:.3g} > "
+                             f"{max_inflation:g})")
+            harm = pruned
+            final_notes = len(notes)
+            notes += refit
+            models, rms, nkeep, cov = fit
+        else:
+            final_notes = len(notes)
+            models, rms, nkeep, cov = _solve(samp, per, harm, pairs, iterations, reject,
+                                             notes=notes)
     if cov is not None and np.isfinite(max_inflation):
         pruned, worst = _identifiable(cov, harm, max_inflation)
         for g, m, vif in worst:
@@ -580,6 +617,64 @@ def _conditioned_start(models, cov, harm, kept):
         out.append(PhaseErrorModel(m.periods, tuple(h[j] for j in sel), c[sel].copy(),
                                    s_[sel].copy()))
     return out
+
+
+def _continuation(samp, per, harm, pairs, iterations, reject, max_inflation):
+    """A restart for a fit of the harmonics ``harm`` (per group) where Gauss-Newton
+    stalled with halved steps: fits each group's two lowest orders (the bulk of a gamma
+    error, N and 2N), then, with the normal matrix of the ladder at that fit (the other
+    harmonics zero), adds the higher orders lowest first, each kept when every variance
+    inflation (as in :func:`_identifiable`) stays within ``max_inflation`` with it.
+    Returns (harmonics per group kept, [(group, order, inflation)] left out, the
+    low-order models: the refit's start), or None when the low-order fit is all of
+    ``harm`` or did not converge itself.
+
+    Why: the inflation depends on where it is taken. The true phases and gains come from
+    the model, and a strong error (a 3-step scan's, slopes 1 + e' down to 0.33) reshapes
+    them: on a 120 x 100 px crop whose 1-period phase covers 28 % of its circle, that
+    group's orders 3-18 have inflations 8e3-7e6 near the solution but all below 100 at the
+    linear start (:func:`_initial`). The fit of every harmonic then takes steps along
+    those nearly collinear combinations that would make the model non-invertible (its
+    slope down to -36), halved 2^7-fold and more; Newton's method after it wandered where
+    the 1-period model was nearly non-invertible (gains up to 20, residual RMS 0.54 rad,
+    5x the noise) and the equations are not smooth on the scale of a standard error, and
+    ran out of steps (the pruning after it, judged on that iterate, then dropped the
+    finest group's well-determined harmonic 3, and the refit stalled in turn). Adding
+    orders lowest first keeps the ones that carry the error (dropping the worst-inflated
+    one first, as :func:`_identifiable` does, dropped order 6 here, whose coefficient
+    is 0.03-0.05 rad, and the refit did not converge)."""
+    low = [list(h[:2]) for h in harm]
+    if low == [list(h) for h in harm]:
+        return None
+    scratch: list[str] = []
+    start, _, _, cov = _solve(samp, per, low, pairs, iterations, reject, notes=scratch)
+    if cov is None or any(x.endswith(_NOT_CONVERGED) for x in scratch):
+        return None
+    offs = np.cumsum([0] + [2 * len(h) for h in harm])
+    n_par = int(offs[-1])
+    harm_arr = [np.asarray(h, dtype=np.int64) for h in harm]
+    coef = _start_coefficients(start, harm, offs, per)
+    ev = _Ladder(samp, per, harm, harm_arr, offs, pairs).evaluate(coef, reject, True)
+    normal = ev.ata + 1e-9 * np.trace(ev.ata) / n_par * np.eye(n_par)
+    cols = [(g, m) for g, h in enumerate(harm) for m in h for _ in (0, 1)]
+    live = np.array([m in low[g] for g, m in cols], dtype=bool)
+    left = []
+    # the higher orders in increasing order (a gamma error's series falls off with the
+    # order), each kept when every inflation stays within max_inflation with it
+    for m, g in sorted((m, g) for g, h in enumerate(harm) for m in h if m not in low[g]):
+        trial = live | np.array([c == (g, m) for c in cols], dtype=bool)
+        sub = normal[np.ix_(trial, trial)]
+        try:
+            vif = float(np.max(np.diag(np.linalg.inv(sub)) * np.diag(sub)))
+        except np.linalg.LinAlgError:
+            vif = np.inf
+        if vif <= max_inflation:
+            live = trial
+        else:
+            left.append((g, m, vif))
+    kept = [[m for m in h if (g, m) not in {(a, b) for a, b, _ in left}]
+            for g, h in enumerate(harm)]
+    return kept, left, start
 
 
 def _coverage(phase) -> float:
@@ -707,7 +802,8 @@ def _invertible_start(coef, per, harm, offs, notes, what):
     return np.zeros(int(offs[-1]))
 
 
-def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
+def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None,
+           restart=False):
     """Gauss-Newton fit of the forward models; returns (models, rms, samples kept,
     covariance of the coefficients or None).
 
@@ -723,7 +819,8 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
     fixed point (the least-squares solution over all samples) is the same. ``start``
     (one PhaseErrorModel per group, e.g. a fit with more harmonics) gives the starting
     coefficients of the harmonics it has. Fallbacks (a zero start, a stalled step) are
-    reported as lines appended to ``notes`` (a list) when given.
+    reported as lines appended to ``notes`` (a list) when given. ``restart``: see
+    :func:`_gauss_newton`.
     """
     offs = np.cumsum([0] + [2 * len(h) for h in harm])
     n_par = int(offs[-1])
@@ -751,7 +848,7 @@ def _solve(samp, per, harm, pairs, iterations, reject, start=None, notes=None):
     coef, rms, total_keep, ata, chi2 = _gauss_newton(samp, per, harm, harm_arr, offs, pairs,
                                                      coef, max_it, reject, tol=1e-7,
                                                      reject_first=good_start, notes=notes,
-                                                     final=True)
+                                                     final=True, restart=restart)
     models = _models(per, harm, offs, coef)
     s2 = chi2 / max(total_keep - n_par, 1)
     ridge = 1e-9 * np.trace(ata) / n_par + 1e-300
@@ -961,7 +1058,7 @@ def _accept_newton(lad, back, jac, full, lam, per, harm, offs):
 
 
 def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, *, tol,
-                  reject_first, notes=None, final=False):
+                  reject_first, notes=None, final=False, restart=False):
     """Iterations of :func:`_solve` from ``coef``; returns (coef, rms, samples kept, normal
     matrix, chi2) of the last evaluated iterate. Outliers are rejected from the first
     iteration on when ``reject_first`` (a good start), else from the second. With
@@ -1009,7 +1106,14 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
     errors). A matrix by differences costs one evaluation of the equations per
     coefficient (~20): the window's two fits took 10 and 36 s of CPU (2.6 and 4.3 s when
     Gauss-Newton ran out of steps), only where Gauss-Newton stalls (on the full paper scan
-    measured it never does: the same iterates as before, bit for bit)."""
+    measured it never does: the same iterates as before, bit for bit).
+
+    ``restart`` (with ``final``): where Gauss-Newton stalls as above after steps it had to
+    halve to keep the model invertible, it stops instead, with a note beginning
+    :data:`_HALVED` (and ending :data:`_NOT_CONVERGED`): the sign of harmonics the data
+    cannot tell apart at the solution, which :func:`fit_phase_errors` then leaves out
+    (:func:`_continuation`) rather than take Newton's method into them. A halved step's
+    convergence tests take its size before halving."""
     n_par = int(offs[-1])
     lad = _Ladder(samp, per, harm, harm_arr, offs, pairs)
     rms = chi2 = 0.0
@@ -1025,6 +1129,7 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
     jac = None  # Newton's matrix -dU/dc once the iteration is switched to it, else None
     lam, full, back = 1.0, 0.0, None  # Newton's damping, its full step's size, way back
     allow = True  # Newton's method may be switched to
+    halved = 0  # Gauss-Newton's steps halved to keep the model invertible (halvings)
     ev = lad.evaluate(coef, reject, reject_first)
     while True:
         ata, atb, chi2, rms, total_keep = ev.ata, ev.atb, ev.chi2, ev.rms, ev.n_keep
@@ -1046,6 +1151,13 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         if (allow and jac is None and last > 0 and size > _SLOW_CONTRACTION * last
                 and size > _WARN_LAST_STEP):
             # Gauss-Newton contracts too slowly or not at all: on to Newton's method
+            if restart and halved and final:
+                # (or, its steps having been halved to stay invertible, to a restart)
+                if notes is not None:
+                    notes.append(f"{_HALVED} ({halved} halvings in {taken} steps; the next "
+                                 f"moves a coefficient by {size:.3g} of its standard "
+                                 f"errors) {_NOT_CONVERGED}")
+                break
             jac, budget = np.empty(0), taken + max_it - 1
         if jac is not None:
             try:
@@ -1062,6 +1174,7 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
                 full = float(np.max(np.abs(newton) / se))
                 back = (coef, ev, se, newton)
                 step = lam * newton
+        whole = step  # (the step before any halving)
         for _ in range(20):  # keep the model invertible (halve the step if need be)
             trial = _models(per, harm, offs, coef + step)
             if all(m.invertible for m in trial):
@@ -1069,6 +1182,8 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
             step = 0.5 * step
             if jac is not None:
                 lam *= 0.5
+            else:
+                halved += 1
         else:
             if notes is not None:
                 notes.append(f"Gauss-Newton stopped at iteration {taken + 1}: no step kept "
@@ -1085,13 +1200,20 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
         size = float(np.max(np.abs(step) / se))
         q = size / last if last > 0 else np.inf
         # (a damped Newton step is short because it is damped, not because the root is
-        # near: the test takes the full step, and its contraction from the last full step)
+        # near: the test takes the full step, and its contraction from the last full step;
+        # so for a Gauss-Newton step halved to keep the model invertible: a 3-step crop's
+        # fit, its steps halved 2^7-2^26-fold, passed the tests 50 standard errors from
+        # its root)
         damped = jac is not None and newton is not None and lam < 1.0
-        gap, cq = (full if damped else size), np.inf
+        if damped:
+            gap, move = full, float(np.max(np.abs(newton)))
+        else:
+            gap = float(np.max(np.abs(whole) / se))
+            move = float(np.max(np.abs(whole)))
+        cq = np.inf
         if last_full > 0:
             cq = gap / last_full
         last, last_full = size, gap
-        move = float(np.max(np.abs(newton))) if damped else float(np.max(np.abs(step)))
         if (move < tol or gap <= _REMAINING
                 or (cq <= _MAX_CONTRACTION and cq / (1.0 - cq) * gap <= _REMAINING)):
             break
@@ -1106,9 +1228,12 @@ def _gauss_newton(samp, per, harm, harm_arr, offs, pairs, coef, max_it, reject, 
             if trial is None:
                 # no damping reduced the next step (e.g. a far start on a nearly singular
                 # problem): back to the old iterate and on with Gauss-Newton (the out-of-
-                # steps test below still says whether the result converged)
+                # steps test below still says whether the result converged; the contraction
+                # tests start anew: measured from Newton's full step, a Gauss-Newton step
+                # of 1.06 standard errors passed them, 222 being far larger)
                 coef, jac, allow = back[0], None, False
                 ev = back[1]
+                last = last_full = 0.0
                 continue
             if q > _MAX_CONTRACTION:  # slow: Newton's matrix anew, by differences
                 jac = np.empty(0)
