@@ -4,10 +4,15 @@ wrong result)."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
+import pytest
 
 from telefringe.fringes.decode import decode
 from telefringe.fringes.scan import PhaseGroup, Scan, ScanManifest
+from telefringe.io.errors import InputError
+from telefringe.io.scan_json import read_scan, write_scan
 
 
 def _fringe_scan(top: int, *, shape=(12, 20), clip: int | None = None) -> Scan:
@@ -23,6 +28,60 @@ def _fringe_scan(top: int, *, shape=(12, 20), clip: int | None = None) -> Scan:
     man = ScanManifest(projector_width=20, projector_height=10,
                        groups=(PhaseGroup(axis="u", periods=1, steps=4),))
     return Scan(manifest=man, stacks=(stack,), max_value=65535.0)
+
+
+def _set_saturation(folder, value) -> None:
+    path = folder / "scan.json"
+    doc = json.loads(path.read_text())
+    doc["saturation"] = value
+    path.write_text(json.dumps(doc))
+
+
+def test_16bit_scan_of_a_12bit_camera_needs_its_saturation(tmp_path):
+    # 12-bit values stored as they are (LSB-aligned, 0..4095): read as 16-bit data, the
+    # clipped pixels (4095) were never flagged and every pixel's modulation fell below
+    # the default threshold (2 % of 65535)
+    write_scan(tmp_path / "lsb", _fringe_scan(4095))
+    with pytest.raises(InputError, match=r"never exceed 4095 .*\"saturation\" in scan.json"):
+        read_scan(tmp_path / "lsb")
+    _set_saturation(tmp_path / "lsb", 4095)
+    scan = read_scan(tmp_path / "lsb")
+    assert scan.max_value == 4095.0
+    pc = decode(scan, gamma_correction=False)
+    assert pc.saturated[0, 0] and not pc.mask[0, 0]
+    assert pc.mask.sum() == pc.mask.size - 1       # the rest decodes
+    # a saturation below the values found is refused
+    _set_saturation(tmp_path / "lsb", 4000)
+    with pytest.raises(InputError, match="pixel values reach 4095, above .*'saturation' 4000"):
+        read_scan(tmp_path / "lsb")
+    for bad in (0, 70000, 4095.5, "4095"):
+        _set_saturation(tmp_path / "lsb", bad)
+        with pytest.raises(InputError, match="'saturation' must be an integer in 1..65535"):
+            read_scan(tmp_path / "lsb")
+
+
+def test_16bit_scan_of_values_shifted_left_needs_its_saturation(tmp_path):
+    # a 12-bit camera's values shifted left by 4 (low bits 0) saturate at 65520, which a
+    # full scale of 65535 never flags
+    sc = _fringe_scan(4095)
+    shifted = Scan(sc.manifest, (sc.stacks[0] << 4,), max_value=65535.0)
+    write_scan(tmp_path / "msb", shifted)
+    with pytest.raises(InputError, match=r"lowest 4 bits .* are 0.*\(e\.g\. 65520\)"):
+        read_scan(tmp_path / "msb")
+    _set_saturation(tmp_path / "msb", 65520)
+    scan = read_scan(tmp_path / "msb")
+    assert decode(scan, gamma_correction=False).saturated[0, 0]
+
+
+def test_full_range_16bit_scan_and_saturation_round_trip(tmp_path):
+    # values using the whole 16-bit range read as before (full scale 65535)
+    write_scan(tmp_path / "full", _fringe_scan(65535))
+    assert read_scan(tmp_path / "full").max_value == 65535.0
+    # a scan whose camera saturates below its images' maximum keeps it through write_scan
+    sc = _fringe_scan(4095)
+    write_scan(tmp_path / "kept", Scan(sc.manifest, sc.stacks, max_value=4095.0))
+    assert json.loads((tmp_path / "kept" / "scan.json").read_text())["saturation"] == 4095
+    assert read_scan(tmp_path / "kept").max_value == 4095.0
 
 
 def test_lone_one_period_group_decodes_the_whole_projector():

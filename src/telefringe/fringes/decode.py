@@ -557,9 +557,8 @@ def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
     exact : bool. False (default): hierarchical ladders of >= 2 period counts (with HDR
         sets, any step counts, 8/16-bit or float) go through one pass of the fused kernel
         (float32 polynomial arctangent and unwrapping, the result assembled in float64;
-        u_p within
-        2e-6 rad * L / (2 pi p_fine) of the exact path, tested up to L = 3840 px); the
-        other methods always take the exact path. True: float64 NumPy throughout
+        u_p within 2e-6 rad * L / (2 pi p_fine) of the exact path, tested up to
+        L = 3840 px); the other methods always take the exact path. True: float64 NumPy throughout
         (``numpy.arctan2``).
     phase_errors : mapping ``(axis, periods, steps) -> PhaseErrorModel`` or None, the
         projector nonlinearity learned beforehand (e.g.
