@@ -98,3 +98,28 @@ def test_lone_one_period_group_decodes_the_whole_projector():
         # measured)
         assert np.nanmax(np.abs(fast.u_p - cols)) < 0.01
         np.testing.assert_allclose(fast.u_p, exact.u_p, atol=1e-9)
+
+
+def test_global_flags_work_after_the_command(tmp_path, capsys):
+    # the README promises -q / -v / --debug for every command; after the command's
+    # arguments they were refused ("No such option: -q")
+    from telefringe.cli import main
+    from telefringe.cli._common import state
+
+    write_scan(tmp_path / "scan", _fringe_scan(65535))
+    capsys.readouterr()
+    try:
+        assert main(["decode", str(tmp_path / "scan"), "-o", str(tmp_path / "c.npz"),
+                     "-q"]) == 0
+        assert (tmp_path / "c.npz").exists() and capsys.readouterr().out == ""
+        assert main(["decode", str(tmp_path / "scan"), "-o", str(tmp_path / "c.npz"),
+                     "--force", "-v"]) == 0
+        assert "median modulation" in capsys.readouterr().out
+        # --debug after the command shows the traceback (the error is raised)
+        with pytest.raises(InputError, match="already exists"):
+            main(["decode", str(tmp_path / "scan"), "-o", str(tmp_path / "c.npz"),
+                  "--debug"])
+        # a sub-command of a group too
+        assert main(["simulate", "scan", "-h", "-q"]) == 0
+    finally:
+        state.quiet = state.verbose = state.debug = False
