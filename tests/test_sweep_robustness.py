@@ -123,3 +123,28 @@ def test_global_flags_work_after_the_command(tmp_path, capsys):
         assert main(["simulate", "scan", "-h", "-q"]) == 0
     finally:
         state.quiet = state.verbose = state.debug = False
+
+
+def test_noise_estimate_is_not_taken_from_a_rounding_dominated_exposure(rig_noise):
+    # HDR exposures 0.1 / 0.6 / 4 of the fast rig (8 bit): the 0.1 exposure's values
+    # (2-3 DN, noise 0.3 DN before rounding) vary less than a + b I says, so its groups
+    # passed as the quietest, the others were left out as noisier, and the line through
+    # their one narrow range had a gain 8-50x too low with a standard error 5-20x too
+    # small (seeds 0-3): sigma_z 2.3x too small, silently
+    import telefringe.simulate.render as sim
+    from telefringe.fringes.noise import NoiseEstimateError, estimate_noise
+    from telefringe.simulate import scenes
+    from telefringe.simulate.presets import crop_camera, get_preset
+
+    vr = crop_camera(get_preset("fast"), col0=100, row0=80, width=96, height=77)
+    geom = sim.trace_geometry(vr, scenes.plate_at_z(0.0))
+    gain = rig_noise(vr).gain
+    scans = [sim.render_scan(vr, None, sim.default_groups(vr), exposures=(0.1, 0.6, 4.0),
+                             seed=seed, geometry=geom)[0] for seed in (0, 1)]
+    e = estimate_noise(scans[0])
+    # measured 0.0176 +- 0.0047 against the true 0.0196, from the 4x exposure's groups
+    assert abs(e.b - gain) < 3 * np.sqrt(e.covariance[1, 1]), (e.b, gain)
+    assert all(g[3] > 0.1 for g in e.groups), e.groups
+    # seed 1: the groups that agree with the quietest span one narrow range: said so
+    with pytest.raises(NoiseEstimateError, match="too narrow an intensity range"):
+        estimate_noise(scans[1])
