@@ -148,3 +148,22 @@ def test_noise_estimate_is_not_taken_from_a_rounding_dominated_exposure(rig_nois
     # seed 1: the groups that agree with the quietest span one narrow range: said so
     with pytest.raises(NoiseEstimateError, match="too narrow an intensity range"):
         estimate_noise(scans[1])
+
+
+def test_bga_on_a_flat_part_says_no_ball_was_found():
+    # a plate with specks measured as a BGA: the message was "no ball could be fitted ()"
+    from telefringe.metrology import BGANominal, MetrologyError, measure_bga
+    from telefringe.reconstruction.cloud import PointCloud
+
+    rows, cols = 60, 80
+    yy, xx = np.mgrid[0:rows, 0:cols] * 0.05
+    rng = np.random.default_rng(0)
+    xyz = np.dstack([xx, yy, 0.002 * rng.standard_normal((rows, cols))])
+    xyz[10:50:10, 10:70:15, 2] += 0.2         # specks far smaller than a ball
+    cloud = PointCloud(xyz, np.ones((rows, cols), bool), np.full((rows, cols), 0.002),
+                       np.zeros((rows, cols)), np.zeros((rows, cols), np.uint8),
+                       np.array([0.0, 0.0, 1.0]))
+    with pytest.raises(MetrologyError, match=r"no ball found: no region of ball size stands "
+                                             r"0\.09 mm \(a fifth of the diameter\)"):
+        measure_bga(cloud, BGANominal(rows=4, cols=4, pitch_mm=0.8, ball_diameter_mm=0.45))
+
