@@ -167,3 +167,33 @@ def test_bga_on_a_flat_part_says_no_ball_was_found():
                                              r"0\.09 mm \(a fifth of the diameter\)"):
         measure_bga(cloud, BGANominal(rows=4, cols=4, pitch_mm=0.8, ball_diameter_mm=0.45))
 
+
+def test_force_never_replaces_an_output_that_is_or_holds_an_input(tmp_path, capfd):
+    # 'reconstruct scans/a -o scans/a --force' (or -o scans) replaced the scan folder by
+    # the reconstruction, deleting the images; a batch whose scans sit in OUT/scans/NAME
+    # did so even without --force
+    from telefringe.cli import main
+    from telefringe.io.atomic import atomic_dir, atomic_file
+
+    scan = tmp_path / "scans" / "a"
+    scan.mkdir(parents=True)
+    (scan / "scan.json").write_text("{}")
+    for out, what in ((scan, "is"), (tmp_path / "scans", "holds")):
+        with pytest.raises(InputError, match=f"{what} the input .*write the output "
+                                             "somewhere else"):
+            with atomic_dir(out, force=True, inputs=(None, scan)):
+                pass
+    with pytest.raises(InputError, match="is the input"):
+        with atomic_file(scan / "scan.json", force=True, inputs=(scan / "scan.json",)):
+            pass
+    assert (scan / "scan.json").read_text() == "{}"
+    # an output beside the input, or a new one inside it, is fine
+    with atomic_dir(tmp_path / "out", force=True, inputs=(scan,)) as tmp:
+        (tmp / "x").write_text("1")
+    with atomic_dir(scan / "rec", force=True, inputs=(scan,)):
+        pass
+    # the calibration report refused before anything is computed
+    assert main(["calibrate", str(scan), "-o", str(tmp_path / "rig.json"), "--report",
+                 str(tmp_path / "scans"), "--force"]) == 2
+    assert "holds the input" in capfd.readouterr().err
+    assert (scan / "scan.json").read_text() == "{}"

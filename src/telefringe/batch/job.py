@@ -467,7 +467,8 @@ def _write(job, options, rec, measurement, summary, cs, row, second=None,
     from telefringe.io.atomic import atomic_dir
     from telefringe.io.jsonable import write_json
 
-    with atomic_dir(job.output, force=True) as tmp:
+    inputs = (job.path, _second_folder(job, options))
+    with atomic_dir(job.output, force=True, inputs=inputs) as tmp:
         if options.write_points:
             from telefringe.io.reconstruction_folder import write_reconstruction
 

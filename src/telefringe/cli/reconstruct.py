@@ -110,7 +110,8 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
             out["heightmap"] = {"pixel_mm": hm.pixel_mm, "shape": list(hm.z.shape)}
         return out
 
-    with progress_bar("writing", 1) as advance, atomic_dir(output, force=force) as tmp:
+    with progress_bar("writing", 1) as advance, atomic_dir(output, force=force,
+                                                               inputs=(scan_dir, second)) as tmp:
         try:
             write_reconstruction(tmp, rec.cloud, make_height_map, texture=rec.texture,
                                  radiance=rec.radiance, title=title or Path(scan_dir).name,
