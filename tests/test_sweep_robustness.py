@@ -197,3 +197,18 @@ def test_force_never_replaces_an_output_that_is_or_holds_an_input(tmp_path, capf
                  str(tmp_path / "scans"), "--force"]) == 2
     assert "holds the input" in capfd.readouterr().err
     assert (scan / "scan.json").read_text() == "{}"
+
+
+def test_a_lone_period_count_says_the_nonlinearity_stays(tmp_path, capsys):
+    # one period count per axis: gamma correction (the default) silently did nothing
+    from telefringe.cli import main
+
+    write_scan(tmp_path / "scan", _fringe_scan(65535))
+    capsys.readouterr()
+    out = str(tmp_path / "c.npz")
+    assert main(["decode", str(tmp_path / "scan"), "-o", out]) == 0
+    assert ("axis u: one period count (1): the projector nonlinearity cannot be learned"
+            in " ".join(capsys.readouterr().out.split()))
+    assert main(["decode", str(tmp_path / "scan"), "-o", out, "--force",
+                 "--no-gamma-correction"]) == 0
+    assert "nonlinearity" not in capsys.readouterr().out

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from telefringe.cli._common import detail, info, read_scan_with_progress
+from telefringe.cli._common import detail, info, read_scan_with_progress, warn_nonlinearity_kept
 
 
 def decode_cmd(
@@ -75,6 +75,7 @@ def decode_cmd(
                                  "scene lit and the exposure long enough?")
             raise InputError(f"{scan}: no pixel could be decoded on axis {ax}")
     write_coords(output, coords, force=force)
+    warn_nonlinearity_kept(coords.axes, gamma)
     for ax, r in coords.axes.items():
         good = r.valid
         frac = float(good.mean())

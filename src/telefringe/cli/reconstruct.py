@@ -13,6 +13,7 @@ from telefringe.cli._common import (
     progress_bar,
     read_scan_with_progress,
     state,
+    warn_nonlinearity_kept,
 )
 
 
@@ -371,6 +372,8 @@ def reconstruct_cmd(
         read.wait()  # no thread left reading, whatever happened
         restore()  # numba's own cache loads again
     c = rec.cloud
+    for coords in (rec.coords, rec.coords_2):
+        warn_nonlinearity_kept(getattr(coords, "axes", None), gamma)
     for name, ax in (getattr(rec.coords, "axes", None) or {}).items():
         fit = getattr(ax, "phase_errors", None)
         if gamma and fit is not None and any(m.harmonics for m in fit.models):
