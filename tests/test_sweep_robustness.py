@@ -212,3 +212,15 @@ def test_a_lone_period_count_says_the_nonlinearity_stays(tmp_path, capsys):
     assert main(["decode", str(tmp_path / "scan"), "-o", out, "--force",
                  "--no-gamma-correction"]) == 0
     assert "nonlinearity" not in capsys.readouterr().out
+
+
+def test_patterns_refuse_periods_finer_than_2_px(tmp_path, capfd):
+    # 300 periods across 400 px: a traceback from write_scan before
+    from telefringe.cli import main
+
+    assert main(["patterns", str(tmp_path / "p"), "--width", "400", "--height", "300",
+                 "--periods", "1,8,300"]) == 2
+    assert "at most 200 periods along u" in capfd.readouterr().err
+    assert not (tmp_path / "p").exists()
+    assert main(["patterns", str(tmp_path / "p"), "--width", "400", "--height", "300",
+                 "--periods", "1,8,200", "--axes", "u", "--no-white-black"]) == 0
