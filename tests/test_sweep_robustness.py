@@ -224,3 +224,17 @@ def test_patterns_refuse_periods_finer_than_2_px(tmp_path, capfd):
     assert not (tmp_path / "p").exists()
     assert main(["patterns", str(tmp_path / "p"), "--width", "400", "--height", "300",
                  "--periods", "1,8,200", "--axes", "u", "--no-white-black"]) == 0
+
+
+def test_decode_force_never_replaces_an_image_or_the_manifest(tmp_path, capfd):
+    from telefringe.cli import main
+
+    write_scan(tmp_path / "scan", _fringe_scan(65535))
+    image = tmp_path / "scan" / "u_001_4s_00.png"
+    before = image.read_bytes()
+    for target in (image, tmp_path / "scan" / "scan.json"):
+        assert main(["decode", str(tmp_path / "scan"), "-o", str(target), "--force"]) == 2
+        assert "is the input" in capfd.readouterr().err
+    assert image.read_bytes() == before
+    assert main(["decode", str(tmp_path / "scan"), "-o", str(tmp_path / "scan" / "c.npz"),
+                 "--force"]) == 0

@@ -168,7 +168,7 @@ def calibrate_cmd(
     from telefringe.io.rig_json import save_rig
     from telefringe.io.scan_json import read_scan
 
-    check_can_write(output, force=force)
+    check_can_write(output, force=force, inputs=(Path(calib_dir) / "calibration.json",))
     if report is not None:
         check_can_write(report, force=force, inputs=(calib_dir,))
     man = load_calibration_set(calib_dir)
