@@ -238,3 +238,13 @@ def test_decode_force_never_replaces_an_image_or_the_manifest(tmp_path, capfd):
     assert image.read_bytes() == before
     assert main(["decode", str(tmp_path / "scan"), "-o", str(tmp_path / "scan" / "c.npz"),
                  "--force"]) == 0
+
+
+def test_nonlinearity_kept_messages():
+    # the batch's row and the CLI both say it (one message per axis of one period count)
+    from telefringe.fringes.decode import nonlinearity_kept
+
+    sc = _fringe_scan(65535)
+    pc = decode(sc)
+    assert [m[:28] for m in nonlinearity_kept(pc.axes, True)] == ["axis u: one period count (1)"]
+    assert nonlinearity_kept(pc.axes, False) == []

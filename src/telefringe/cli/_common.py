@@ -125,21 +125,12 @@ def read_scan_with_progress(folder, manifest=None):
         return read_scan(folder, progress=tick)
 
 
+
 def warn_nonlinearity_kept(axes, gamma: bool) -> None:
-    """Say so (a warning) for each decoded axis (name -> AxisCoordinates) whose projector
-    nonlinearity was asked to be removed (``gamma``) but could not be: one period count
-    (a lone group, or one with a Gray code) leaves nothing to learn it from, and without a
-    model from the rig its periodic phase error stays in the coordinates (and out of
-    sigma)."""
-    if not gamma:
-        return
-    for name, ax in (axes or {}).items():
-        fit = getattr(ax, "phase_errors", None)
-        if len(getattr(ax, "periods", ())) == 1 and (
-                fit is None or not any(m.harmonics for m in fit.models)):
-            info(f"[yellow]warning:[/yellow] axis {name}: one period count "
-                 f"({ax.periods[0]}): the projector nonlinearity cannot be learned from it "
-                 "and stays in the phase (a systematic error sigma does not hold; fewer "
-                 "steps, more of it): use a rig.json that holds it (learned at "
-                 "calibration), fringes of >= 2 period counts, or --no-gamma-correction to "
-                 "accept it")
+    """Print :func:`telefringe.fringes.decode.nonlinearity_kept`'s messages as warnings
+    (the projector nonlinearity asked to be removed but left in, per axis)."""
+    from telefringe.fringes.decode import nonlinearity_kept
+
+    for msg in nonlinearity_kept(axes, gamma):
+        msg = msg.replace("no gamma correction", "--no-gamma-correction")
+        info(f"[yellow]warning:[/yellow] {msg}")

@@ -66,6 +66,7 @@ __all__ = [
     "decode",
     "decode_axis",
     "choose_method",
+    "nonlinearity_kept",
 ]
 
 METHODS = ("auto", "hierarchical", "heterodyne", "number-theoretic", "gray")
@@ -383,6 +384,27 @@ def _decode_axis_fused(scan: Scan, axis: str, sets, *, length: int, noise: Noise
         saturated=out["saturated"], low_modulation=out["low_modulation"], shadow=shadow,
         order_reliable=out["order_reliable"], exposure=out["exposure"], periods=tuple(per),
         phase_errors=fit)
+
+
+def nonlinearity_kept(axes, gamma_correction: bool) -> list[str]:
+    """Why the projector nonlinearity stayed in decoded coordinates although
+    ``gamma_correction`` asked to remove it: one message per axis (``axes``: name ->
+    :class:`AxisCoordinates`) of one period count (a lone group, or one with a Gray code:
+    nothing to learn it from) without a model given (e.g. by the rig). Its periodic phase
+    error is then in the coordinates and not in their sigma. Empty when none."""
+    if not gamma_correction:
+        return []
+    out = []
+    for name, ax in (axes or {}).items():
+        fit = getattr(ax, "phase_errors", None)
+        if len(getattr(ax, "periods", ())) == 1 and (
+                fit is None or not any(m.harmonics for m in fit.models)):
+            out.append(f"axis {name}: one period count ({ax.periods[0]}): the projector "
+                       "nonlinearity cannot be learned from it and stays in the phase (a "
+                       "systematic error sigma does not hold; fewer steps, more of it): use "
+                       "a rig.json that holds it (learned at calibration), fringes of >= 2 "
+                       "period counts, or no gamma correction to accept it")
+    return out
 
 
 def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction: bool = True,
