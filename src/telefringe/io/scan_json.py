@@ -391,6 +391,8 @@ def _saturation(folder: Path, given, bits: int, images: list) -> float:
     camera's), or whose lowest bits are always 0 (a 10-14-bit camera's values shifted
     left, saturating below 65535). Those raise an InputError asking for ``saturation``.
     """
+    if given is None and bits == 8:
+        return 255.0
     top = max(int(im.max()) for im in images)
     if given is not None:
         if bits == 8 and given > 255:
@@ -401,8 +403,6 @@ def _saturation(folder: Path, given, bits: int, images: list) -> float:
                              f"'saturation' {given} (the stored value at which the camera "
                              "saturates): correct it")
         return float(given)
-    if bits == 8:
-        return 255.0
     how = ('give the stored value at which the camera saturates as "saturation" in '
            "scan.json")
     if top < 2 ** _LOW_RANGE_BITS:
