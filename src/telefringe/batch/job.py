@@ -425,13 +425,17 @@ def _run(job: ScanJob, options: BatchOptions, key: str, t0: float) -> dict:
         measurement, summary = _measure(rec, options, rig,
                                         None if maps is None else maps.expand(), scan, scan_2)
     t3 = time.perf_counter()
+    from telefringe.fringes.decode import nonlinearity_kept
     from telefringe.io.reports import cloud_summary
 
     cs = cloud_summary(rec.cloud)
+    kept = [f"camera {i + 1} {m}" if scan_2 is not None else m
+            for i, c in enumerate((rec.coords, getattr(rec, "coords_2", None)))
+            for m in nonlinearity_kept(getattr(c, "axes", None), options.gamma_correction)]
     row = _row(job, options, key=key, points=int(rec.cloud.count),
                valid_fraction=cs["valid_fraction"], sigma_z_median_mm=cs["sigma_z_median_mm"],
-               warnings="; ".join(dict.fromkeys(" ".join(str(w.message).split())
-                                                for w in caught)),
+               warnings="; ".join(dict.fromkeys(
+                   [*kept, *(" ".join(str(w.message).split()) for w in caught)])),
                t_read_s=t1 - t0, t_reconstruct_s=t2 - t1, t_measure_s=t3 - t2)
     row.update(flatten_summary(summary, options.measure))
     if job.output is not None:
@@ -467,7 +471,8 @@ def _write(job, options, rec, measurement, summary, cs, row, second=None,
     from telefringe.io.atomic import atomic_dir
     from telefringe.io.jsonable import write_json
 
-    with atomic_dir(job.output, force=True) as tmp:
+    inputs = (job.path, _second_folder(job, options))
+    with atomic_dir(job.output, force=True, inputs=inputs) as tmp:
         if options.write_points:
             from telefringe.io.reconstruction_folder import write_reconstruction
 

@@ -203,13 +203,48 @@ def main(argv: list[str] | None = None) -> int:
         gc.freeze()
 
 
+#: the global flags also accepted after a sub-command (``telefringe decode SCAN -o X -q``)
+_ANYWHERE = {"quiet": "quiet", "verbose": "verbose", "debug": "debug"}
+
+
+def _flags_anywhere(root) -> None:
+    """Give every sub-command (and group) of the click command ``root`` copies of the
+    global ``-q``/``-v``/``--debug`` options, so that they work where users put them: after
+    the command and its arguments as well as before it (the README promises them for every
+    command). A flag given anywhere turns its setting on; none turns one off."""
+    import copy
+
+    originals = [p for p in root.params if p.name in _ANYWHERE]
+
+    def turn_on(ctx, param, value):
+        if value:
+            setattr(state, _ANYWHERE[param.name], True)
+
+    def walk(cmd):
+        for sub in (getattr(cmd, "commands", None) or {}).values():
+            names = {o for p in sub.params for o in (*p.opts, *p.secondary_opts)}
+            for orig in originals:
+                if names.isdisjoint(orig.opts):
+                    flag = copy.copy(orig)
+                    flag.expose_value = False
+                    flag.callback = turn_on
+                    sub.params.append(flag)
+            walk(sub)
+
+    walk(root)
+
+
 def _run(argv: list[str]) -> int:
     """:func:`main` with its arguments."""
+    import typer.main
+
     from telefringe.io.errors import InputError
 
     state.debug = "--debug" in argv
     try:
-        rv = app(args=argv, prog_name="telefringe", standalone_mode=False)
+        root = typer.main.get_command(app)
+        _flags_anywhere(root)
+        rv = root.main(args=argv, prog_name="telefringe", standalone_mode=False)
     except InputError as exc:
         if state.debug:
             raise

@@ -7,7 +7,7 @@ import threading
 from dataclasses import dataclass
 
 __all__ = ["state", "console", "err_console", "progress_bar", "info", "detail",
-           "read_scan_with_progress"]
+           "read_scan_with_progress", "warn_nonlinearity_kept"]
 
 
 class _Console:
@@ -123,3 +123,14 @@ def read_scan_with_progress(folder, manifest=None):
             done = k
 
         return read_scan(folder, progress=tick)
+
+
+
+def warn_nonlinearity_kept(axes, gamma: bool) -> None:
+    """Print :func:`telefringe.fringes.decode.nonlinearity_kept`'s messages as warnings
+    (the projector nonlinearity asked to be removed but left in, per axis)."""
+    from telefringe.fringes.decode import nonlinearity_kept
+
+    for msg in nonlinearity_kept(axes, gamma):
+        msg = msg.replace("no gamma correction", "--no-gamma-correction")
+        info(f"[yellow]warning:[/yellow] {msg}")

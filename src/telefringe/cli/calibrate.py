@@ -168,9 +168,9 @@ def calibrate_cmd(
     from telefringe.io.rig_json import save_rig
     from telefringe.io.scan_json import read_scan
 
-    check_can_write(output, force=force)
+    check_can_write(output, force=force, inputs=(Path(calib_dir) / "calibration.json",))
     if report is not None:
-        check_can_write(report, force=force)
+        check_can_write(report, force=force, inputs=(calib_dir,))
     man = load_calibration_set(calib_dir)
     side, mirror_source = _projector_side(man, projector_side, calib_dir)
     detail(f"{len(man.poses)} poses, target {man.target.rows} x {man.target.cols} at "
@@ -216,7 +216,7 @@ def calibrate_cmd(
     save_rig(output, calib, force=force)
     info(f"wrote {output}")
     if report is not None:
-        with atomic_dir(report, force=force) as tmp:
+        with atomic_dir(report, force=force, inputs=(calib_dir,)) as tmp:
             names = write_calibration_report(Path(tmp), calib)
         info(f"wrote {report}/ ({', '.join(names)})")
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from telefringe.cli._common import detail, info, read_scan_with_progress
+from telefringe.cli._common import detail, info, read_scan_with_progress, warn_nonlinearity_kept
 
 
 def decode_cmd(
@@ -38,11 +38,15 @@ def decode_cmd(
     from telefringe.io.atomic import check_can_write
     from telefringe.io.coords_npz import write_coords
     from telefringe.io.errors import InputError
-    from telefringe.io.scan_json import load_scan_manifest
+    from telefringe.io.scan_json import load_scan_manifest, scan_image_names
 
     check_can_write(output, force=force)
     phase_errors = None
     man = load_scan_manifest(scan)
+    # (--force never replaces one of the inputs: an image, scan.json or the rig)
+    check_can_write(output, force=force, inputs=[Path(scan) / "scan.json", rig,
+                                                 *(Path(scan) / n for n in
+                                                   scan_image_names(man))])
     if rig is not None:
         from telefringe.io.rig_json import load_rig
 
@@ -75,6 +79,7 @@ def decode_cmd(
                                  "scene lit and the exposure long enough?")
             raise InputError(f"{scan}: no pixel could be decoded on axis {ax}")
     write_coords(output, coords, force=force)
+    warn_nonlinearity_kept(coords.axes, gamma)
     for ax, r in coords.axes.items():
         good = r.valid
         frac = float(good.mean())

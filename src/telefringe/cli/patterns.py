@@ -80,6 +80,12 @@ def patterns_cmd(
     if precompensate_gamma is not None and not 0.1 <= precompensate_gamma <= 10:
         raise InputError(f"--precompensate-gamma must be in 0.1..10, got {precompensate_gamma}")
     for a in ax:
+        length = width if a == "u" else height
+        if 2 * max(per) > length:
+            raise InputError(f"--periods {periods}: {max(per)} periods across the projector's "
+                             f"{'width' if a == 'u' else 'height'} of {length} px leave less "
+                             "than 2 px per period (at most "
+                             f"{length // 2} periods along {a})")
         try:
             choose_method(per, length=width if a == "u" else height,
                           gray_bits=gray or None)

@@ -13,6 +13,7 @@ from telefringe.cli._common import (
     progress_bar,
     read_scan_with_progress,
     state,
+    warn_nonlinearity_kept,
 )
 
 
@@ -110,7 +111,8 @@ def reconstruct_to_folder(scan_dir, rig, output, *, force: bool = False,
             out["heightmap"] = {"pixel_mm": hm.pixel_mm, "shape": list(hm.z.shape)}
         return out
 
-    with progress_bar("writing", 1) as advance, atomic_dir(output, force=force) as tmp:
+    with progress_bar("writing", 1) as advance, atomic_dir(output, force=force,
+                                                               inputs=(scan_dir, second)) as tmp:
         try:
             write_reconstruction(tmp, rec.cloud, make_height_map, texture=rec.texture,
                                  radiance=rec.radiance, title=title or Path(scan_dir).name,
@@ -370,6 +372,8 @@ def reconstruct_cmd(
         read.wait()  # no thread left reading, whatever happened
         restore()  # numba's own cache loads again
     c = rec.cloud
+    for coords in (rec.coords, rec.coords_2):
+        warn_nonlinearity_kept(getattr(coords, "axes", None), gamma)
     for name, ax in (getattr(rec.coords, "axes", None) or {}).items():
         fit = getattr(ax, "phase_errors", None)
         if gamma and fit is not None and any(m.harmonics for m in fit.models):

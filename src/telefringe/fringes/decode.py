@@ -66,6 +66,7 @@ __all__ = [
     "decode",
     "decode_axis",
     "choose_method",
+    "nonlinearity_kept",
 ]
 
 METHODS = ("auto", "hierarchical", "heterodyne", "number-theoretic", "gray")
@@ -385,6 +386,27 @@ def _decode_axis_fused(scan: Scan, axis: str, sets, *, length: int, noise: Noise
         phase_errors=fit)
 
 
+def nonlinearity_kept(axes, gamma_correction: bool) -> list[str]:
+    """Why the projector nonlinearity stayed in decoded coordinates although
+    ``gamma_correction`` asked to remove it: one message per axis (``axes``: name ->
+    :class:`AxisCoordinates`) of one period count (a lone group, or one with a Gray code:
+    nothing to learn it from) without a model given (e.g. by the rig). Its periodic phase
+    error is then in the coordinates and not in their sigma. Empty when none."""
+    if not gamma_correction:
+        return []
+    out = []
+    for name, ax in (axes or {}).items():
+        fit = getattr(ax, "phase_errors", None)
+        if len(getattr(ax, "periods", ())) == 1 and (
+                fit is None or not any(m.harmonics for m in fit.models)):
+            out.append(f"axis {name}: one period count ({ax.periods[0]}): the projector "
+                       "nonlinearity cannot be learned from it and stays in the phase (a "
+                       "systematic error sigma does not hold; fewer steps, more of it): use "
+                       "a rig.json that holds it (learned at calibration), fringes of >= 2 "
+                       "period counts, or no gamma correction to accept it")
+    return out
+
+
 def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction: bool = True,
                 min_modulation: float | None = None, noise: NoiseModel | None = None,
                 max_residual: float = np.pi / 2, gray_min_contrast: float | None = None,
@@ -413,7 +435,10 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
         gray = max(grays, key=lambda gs: (gs[0].complementary, gs[0].exposure))
     method = choose_method(list(sets), length=length,
                            gray_bits=gray[0].bits if gray else None, method=method)
-    fusable = not exact and method == "hierarchical" and _fusable(sets)
+    # (a lone one-period group takes the exact path: the fused kernel reads its wrapped
+    # phase in (-pi, pi] as the coordinate, which loses the projector's second half)
+    fusable = (not exact and method == "hierarchical" and len(sets) >= 2
+               and _fusable(sets))
     given = _given_fit(phase_errors, axis, sets) if gamma_correction else None
     if fusable and (given is not None or not (gamma_correction and len(sets) >= 2)):
         fit = given
@@ -551,11 +576,11 @@ def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
     max_residual : float, rad, order-consistency tolerance of the unwrapping (pi/2).
     gray_min_contrast : float, DN, contrast below which a Gray bit counts as unread
         (default 3 sigma_I at the threshold level).
-    exact : bool. False (default): hierarchical ladders (with HDR sets, any step counts,
-        8/16-bit or float) go through one pass of the fused kernel (float32 polynomial
-        arctangent and unwrapping, the result assembled in float64; u_p within
-        2e-6 rad * L / (2 pi p_fine) of the exact path, tested up to L = 3840 px); the
-        other methods always take the exact path. True: float64 NumPy throughout
+    exact : bool. False (default): hierarchical ladders of >= 2 period counts (with HDR
+        sets, any step counts, 8/16-bit or float) go through one pass of the fused kernel
+        (float32 polynomial arctangent and unwrapping, the result assembled in float64;
+        u_p within 2e-6 rad * L / (2 pi p_fine) of the exact path, tested up to
+        L = 3840 px); the other methods always take the exact path. True: float64 NumPy throughout
         (``numpy.arctan2``).
     phase_errors : mapping ``(axis, periods, steps) -> PhaseErrorModel`` or None, the
         projector nonlinearity learned beforehand (e.g.

@@ -543,8 +543,18 @@ def estimate_noise(scan: Scan, *, max_pixels: int | None = MAX_PIXELS,
                                  "intensity range to fit read and shot noise")
     if np.count_nonzero(ns) < 2:  # fewer than 2 bins of decodable pixels: all pixels
         ns = nall
-    keep = _consistent_groups(gid, xs, ys, ss, ns, q2)
+    # rounding adds q2 to the variance only when the noise before it is >~ 0.5 DN: below,
+    # rounded values vary less, and a group whose every bin is there (a very short
+    # exposure of an HDR set, 2-3 DN) would pass as the quietest one and leave a line fitted
+    # to one narrow range (gain 8x too low, measured); such groups inform nothing here
+    informative = np.unique(gid[ys >= QUANTIZED_BELOW * q2]) if q2 else np.unique(gid)
+    use = np.isin(gid, informative) if informative.size else np.ones(gid.size, dtype=bool)
+    keep = _consistent_groups(gid[use], xs[use], ys[use], ss[use], ns[use], q2)
     sel = np.isin(gid, keep)
+    if np.unique(np.round(xs[sel] / (max_value / N_BINS))).size < 2:
+        raise NoiseEstimateError(
+            f"{scan.source}: the phase groups whose noise agrees ({len(keep)} of "
+            f"{len(usable)}) span too narrow an intensity range to fit read and shot noise")
     a, b, cov, chi2_dof, misfit, bounded = _fit_line(xs[sel], ys[sel], ss[sel], ns[sel], q2)
     q = float(np.sqrt(q2))
     model = NoiseModel(read_noise=float(np.sqrt(max(a - q2, 0.0))), gain=max(b, 0.0),
@@ -560,6 +570,11 @@ def estimate_noise(scan: Scan, *, max_pixels: int | None = MAX_PIXELS,
                          excluded=tuple(keys[i] for i in range(len(usable))
                                         if i not in keep and npix_group[i]))
 
+
+#: integer images: bins whose variance is below this many times the rounding's (1/12
+#: DN^2) are dominated by the rounding (noise before it below ~0.4 DN), where the
+#: variance of rounded values is not ``a + b I`` (it is less)
+QUANTIZED_BELOW = 2.0
 
 #: a group whose residuals say more than this much more variance (relative) than the
 #: quietest group's is left out: the camera is the same, so the excess is fringe shape

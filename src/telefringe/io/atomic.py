@@ -40,7 +40,25 @@ def _umask() -> int:
     return mask
 
 
-def check_can_write(path, *, force: bool, kind: str | None = None) -> Path:
+def _held_input(path: Path, inputs) -> str | None:
+    """The first of ``inputs`` (paths or None) that ``path`` is or holds, else None."""
+    try:
+        real = path.resolve()
+    except (OSError, RuntimeError):
+        return None
+    for inp in inputs:
+        if inp is None:
+            continue
+        try:
+            r = Path(inp).resolve()
+        except (OSError, RuntimeError):
+            continue
+        if r == real or real in r.parents:
+            return str(inp)
+    return None
+
+
+def check_can_write(path, *, force: bool, kind: str | None = None, inputs=()) -> Path:
     """Refuse to overwrite an existing output unless ``force``; return the path.
 
     Parameters
@@ -50,17 +68,25 @@ def check_can_write(path, *, force: bool, kind: str | None = None) -> Path:
     kind : ``"file"``, ``"folder"`` or None; with ``force``, an existing output of the
         other kind is still refused (a folder is never replaced by a file, nor the
         reverse).
+    inputs : paths (or None) the command reads: an existing output that is one of them
+        or holds one (``reconstruct scans/a -o scans/a --force``, ``-o scans``) is
+        refused even with ``force``, as replacing it would delete the input.
 
     Raises
     ------
     InputError
-        The output exists (without ``force``), is of the other kind, or its parent
-        folder does not exist.
+        The output exists (without ``force``), is of the other kind, is or holds an
+        input, or its parent folder does not exist.
     """
     path = Path(path)
     if path.exists() or path.is_symlink():
         if not force:
             raise InputError(f"{path}: already exists; pass --force to replace it")
+        held = _held_input(path, inputs)
+        if held is not None:
+            what = "is" if Path(held).resolve() == path.resolve() else "holds"
+            raise InputError(f"{path}: {what} the input {held}, which replacing it would "
+                             "delete; write the output somewhere else")
         if kind == "file" and path.is_dir():
             raise InputError(f"{path}: is a folder; refusing to replace it with a file")
         if kind == "folder" and not path.is_dir():
@@ -72,16 +98,17 @@ def check_can_write(path, *, force: bool, kind: str | None = None) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_file(path, *, force: bool = True):
+def atomic_file(path, *, force: bool = True, inputs=()):
     """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
 
     The caller writes the whole file to the yielded path. On success it is flushed to
     disk and renamed onto ``path``; on an exception (or interruption) the temporary
     file is removed and ``path`` is left untouched. Without ``force`` an existing
-    ``path`` is refused (:class:`InputError`), also if it appears while writing.
+    ``path`` is refused (:class:`InputError`), also if it appears while writing; so is
+    one of ``inputs`` (the command's input paths) even with ``force``.
     """
     path = Path(path)
-    check_can_write(path, force=force, kind="file")
+    check_can_write(path, force=force, kind="file", inputs=inputs)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
@@ -117,15 +144,16 @@ def _remove(path: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_dir(path, *, force: bool = False):
+def atomic_dir(path, *, force: bool = False, inputs=()):
     """Yield a temporary folder beside ``path``; it becomes ``path`` on success.
 
     An existing ``path`` is replaced only with ``force`` (and only once the new one is
     complete). On failure the temporary folder is removed and nothing else changes; if
-    the final swap itself fails, the previous ``path`` is put back.
+    the final swap itself fails, the previous ``path`` is put back. A ``path`` that is
+    or holds one of ``inputs`` (the command's input paths) is never replaced.
     """
     path = Path(path)
-    check_can_write(path, force=force, kind="folder")
+    check_can_write(path, force=force, kind="folder", inputs=inputs)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
     try:
         yield tmp

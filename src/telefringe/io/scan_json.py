@@ -52,7 +52,9 @@ MAX_SCAN_BYTES = 8 * 1024**3
 _PHASE_KEYS = {"type", "axis", "periods", "steps", "exposure", "offset", "images"}
 _GRAY_KEYS = {"type", "axis", "bits", "complementary", "exposure", "images"}
 _SCAN_KEYS = {"format", "version", "projector", "patterns", "white", "black", "meta",
-              "capture"}
+              "capture", "saturation"}
+#: 16-bit scans whose values never reach 2**_LOW_RANGE_BITS need ``saturation`` said.
+_LOW_RANGE_BITS = 14
 
 
 # --------------------------------------------------------------------------- scan manifest
@@ -183,6 +185,10 @@ def parse_scan_manifest(doc, *, folder: Path | None = None, where: str = "scan.j
                       f"with periods = {2 ** gg.bits} on that axis")
     if groups and not any(isinstance(g, PhaseGroup) for g in groups):
         probs.add("no phase group: a scan needs at least one phase-shifted fringe group")
+    sat = doc.get("saturation")
+    if sat is not None and not (is_int(sat) and 1 <= sat <= 65535):
+        probs.add("'saturation' must be an integer in 1..65535 (the stored pixel value at "
+                  f"which the camera saturates), got {_r(sat)}")
     if "capture" in doc:
         listed = {n for g in groups for n in g.images} | {
             v for v in (extras.get("white"), extras.get("black")) if v}
@@ -326,14 +332,17 @@ def read_scan(folder, *, progress=None) -> Scan:
     Returns
     -------
     Scan
-        Its ``max_value`` is 255 for 8-bit and 65535 for 16-bit images; its ``meta`` is
-        the manifest's ``meta`` object (or empty).
+        Its ``max_value`` is the manifest's ``saturation`` when given, else 255 for
+        8-bit and 65535 for 16-bit images; its ``meta`` is the manifest's ``meta``
+        object (or empty).
 
     Raises
     ------
     InputError
         A bad manifest, or images that are missing, unreadable, too large, or differ in
-        size or bit depth. Sizes and bit depths are compared from the headers before
+        size or bit depth; pixel values above ``saturation``; 16-bit images without
+        ``saturation`` whose values show a camera that cannot reach 65535 (see
+        :func:`_saturation`). Sizes and bit depths are compared from the headers before
         any image is decoded.
     """
     folder, man, doc = _load_scan(folder)
@@ -365,11 +374,55 @@ def read_scan(folder, *, progress=None) -> Scan:
             if progress is not None:
                 progress(i + 1, len(names))
     stacks = tuple(np.stack([images[n] for n in g.images]) for g in man.groups)
-    max_value = 255.0 if first.bits == 8 else 65535.0
+    max_value = _saturation(folder, doc.get("saturation"), first.bits, list(images.values()))
     return Scan(manifest=man, stacks=stacks,
                 white=images.get(man.white) if man.white else None,
                 black=images.get(man.black) if man.black else None,
                 max_value=max_value, source=str(folder), meta=dict(doc.get("meta", {})))
+
+
+def _saturation(folder: Path, given, bits: int, images: list) -> float:
+    """The stored value at which the scan's camera saturates (``Scan.max_value``).
+
+    ``given``: scan.json's ``saturation`` (validated) or None: then 255 for 8-bit images
+    and 65535 for 16-bit ones, unless the 16-bit values show that the camera cannot reach
+    65535 (saturated pixels would then pass as valid ones): values that never reach
+    2**14 (a 10-, 12- or 14-bit camera's values stored as they are, or an 8-bit
+    camera's), or whose lowest bits are always 0 (a 10-14-bit camera's values shifted
+    left, saturating below 65535). Those raise an InputError asking for ``saturation``.
+    """
+    if given is None and bits == 8:
+        return 255.0
+    top = max(int(im.max()) for im in images)
+    if given is not None:
+        if bits == 8 and given > 255:
+            raise InputError(f"{folder}/scan.json: 'saturation' {given} is above 255, the "
+                             "largest value of its 8-bit images")
+        if top > given:
+            raise InputError(f"{folder}: pixel values reach {top}, above scan.json's "
+                             f"'saturation' {given} (the stored value at which the camera "
+                             "saturates): correct it")
+        return float(given)
+    how = ('give the stored value at which the camera saturates as "saturation" in '
+           "scan.json")
+    if top < 2 ** _LOW_RANGE_BITS:
+        raise InputError(
+            f"{folder}: these 16-bit images never exceed {top} (of 65535): the values of a "
+            "10-, 12- or 14-bit camera stored as they are (saturating at 1023, 4095 or "
+            f"16383)? Saturated pixels cannot be told from good ones: {how} (e.g. 4095 "
+            "for 12-bit values; 65535 if this is a 16-bit scan that is just this dark)")
+    used = 0
+    for im in images:
+        used |= int(np.bitwise_or.reduce(im, axis=None))
+    zeros = (used & -used).bit_length() - 1      # trailing zero bits of every value
+    if zeros >= 2:
+        full = (65535 >> zeros) << zeros
+        raise InputError(
+            f"{folder}: the lowest {zeros} bits of every pixel value of these 16-bit images "
+            f"are 0: a {16 - zeros}-bit camera's values shifted left by {zeros}, which "
+            f"saturate at {full}, not 65535? Saturated pixels cannot be told from good "
+            f"ones: {how} (e.g. {full})")
+    return 65535.0
 
 
 def _default_names(man: ScanManifest) -> ScanManifest:
@@ -418,6 +471,9 @@ def write_scan(folder, scan: Scan, *, force: bool = False, capture: dict | None 
     doc = scan_manifest_to_json(man)
     if scan.meta:
         doc["meta"] = scan.meta
+    full = 255.0 if all(s.dtype == np.uint8 for s in scan.stacks) else 65535.0
+    if float(scan.max_value) != full:     # a camera saturating below its images' maximum
+        doc["saturation"] = int(scan.max_value)
     if capture is not None:
         doc["capture"] = capture
     text = json.dumps(doc, indent=2, allow_nan=False, default=_json_default) + "\n"

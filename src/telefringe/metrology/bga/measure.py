@@ -265,6 +265,12 @@ def measure_bga(cloud: PointCloud, nominal: BGANominal, *, image=None, projector
                 D / 2)
             s2 = (s2[0], float(np.sqrt(cov_theta[0, 0])))
     ok = [k for k, c in enumerate(caps) if c.fit is not None]
+    if not caps:
+        thr = (f"{0.2 * D:.3g} mm (a fifth of the diameter)" if opt.min_height is None
+               else f"{float(opt.min_height):.3g} mm (min_height)")
+        raise MetrologyError(
+            f"no ball found: no region of ball size stands {thr} above the substrate plane "
+            "(is this a BGA, its balls toward the camera, of this diameter?)")
     if not ok:
         why = sorted({c.reason for c in caps})
         raise MetrologyError(f"no ball could be fitted ({', '.join(why)})")
