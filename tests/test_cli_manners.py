@@ -117,6 +117,36 @@ def test_a_bug_still_shows_its_traceback(tmp_path):
     assert out.returncode == 1 and "ZeroDivisionError" in out.stderr
 
 
+# A temporary command that issues a Python warning, run by the real entry point as the
+# console script runs it (main() without argv)
+_WARN_SCRIPT = textwrap.dedent("""
+    import sys, warnings
+    from telefringe.cli import app, main
+
+    @app.command("tf-test-warn")
+    def _warn():
+        warnings.warn("fit for periods [1, 8, 64] (not converged)", RuntimeWarning)
+
+    sys.exit(main())
+""")
+
+
+@pytest.mark.parametrize("flags", [(), ("-q",), ("--debug",)])
+def test_a_python_warning_is_one_line_of_the_command(tmp_path, flags):
+    """A warning raised in the library (a fit that did not converge) reaches the user as
+    the command's own one-line warning on stderr, without Python's source path; -q
+    silences it; --debug shows Python's format with the source line."""
+    out = run("tf-test-warn", *flags, script=_WARN_SCRIPT, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    err = out.stderr.strip()
+    if flags == ("-q",):
+        assert err == ""
+    elif flags == ("--debug",):
+        assert "RuntimeWarning: fit for periods [1, 8, 64] (not converged)" in err
+    else:
+        assert err == "warning: fit for periods [1, 8, 64] (not converged)"
+
+
 def test_the_console_script_is_installed():
     assert EXE.exists() or shutil.which("telefringe"), "the `telefringe` command is missing"
 

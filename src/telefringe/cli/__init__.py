@@ -190,10 +190,20 @@ def main(argv: list[str] | None = None) -> int:
     interpreter's shutdown do not walk numba's hundred thousand objects (~0.4 s CPU at
     exit). Finalisation is otherwise unchanged (atexit handlers, flushed streams). With
     ``argv`` (tests, programs calling it), the caller's collector is left alone.
+
+    Without ``argv``, Python warnings (a fit that did not converge, a noise estimate that
+    fell back to its default...) are printed as the command's own warnings, one line
+    each on stderr (:func:`telefringe.cli._common.show_warning`); with ``argv`` the
+    caller's warning machinery is left alone (pytest records them).
     """
     if argv is not None:
         return _run(argv)
     import gc
+    import warnings
+
+    from telefringe.cli._common import show_warning
+
+    warnings.showwarning = show_warning
 
     gc.freeze()
     gc.set_threshold(max(gc.get_threshold()[0], _GC_THRESHOLD_0), *gc.get_threshold()[1:])

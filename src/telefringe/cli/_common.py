@@ -7,7 +7,7 @@ import threading
 from dataclasses import dataclass
 
 __all__ = ["state", "console", "err_console", "progress_bar", "info", "detail",
-           "read_scan_with_progress", "warn_nonlinearity_kept"]
+           "read_scan_with_progress", "warn_nonlinearity_kept", "show_warning"]
 
 
 class _Console:
@@ -57,6 +57,25 @@ def info(msg: str) -> None:
     """Print a normal message (suppressed by --quiet)."""
     if not state.quiet:
         console.print(msg)
+
+
+def show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A Python warning as the command shows it (``warnings.showwarning``'s signature):
+    one line on stderr, ``warning: <message>``, without the source file and line that
+    Python prints (which tell a user nothing); suppressed by --quiet; with --debug,
+    Python's own format (source file and line)."""
+    if state.debug:
+        import sys
+        import warnings
+
+        (file or sys.stderr).write(warnings.formatwarning(message, category, filename,
+                                                          lineno, line))
+        return
+    if state.quiet:
+        return
+    from rich.markup import escape
+
+    err_console.print(f"[yellow]warning:[/yellow] {escape(str(message))}", soft_wrap=True)
 
 
 def detail(msg: str) -> None:
