@@ -8,7 +8,7 @@ import pytest
 from telefringe.fringes import _kernels as _k
 from telefringe.fringes.decode import decode
 from telefringe.fringes.errors import DecodeError
-from telefringe.fringes.fast import decode_axis_fast
+from telefringe.fringes.fast import _top_limit, decode_axis_fast
 from telefringe.fringes.nonlinearity import PhaseErrorModel
 from telefringe.fringes.phase import NoiseModel
 from telefringe.fringes.scan import PhaseGroup, Scan, ScanManifest
@@ -417,6 +417,34 @@ def test_fast_path_applies_a_correction_table():
     raw = decode_axis_fast(stacks, (1, 8, 64), 4, length=800)
     e_raw = np.sqrt(np.nanmean((raw.coordinate - x)[ok] ** 2))
     assert e_raw > 1.1 * pred  # (the 4-step gamma-2.2 error the correction removes)
+
+
+def test_saturation_limit_in_the_samples_type_is_exact():
+    # the kernel tests v < max_value as v < lim or all, in the samples' dtype: the same
+    # answer for every uint8 and uint16 value and for float32 values next to the limit
+    mvs = [255.0, 254.5, 254.0, 1.0, 0.5, 0.0, -3.5, 256.0, 4095.0, 65535.0, 65535.5,
+           1e30, np.inf, -np.inf, np.nan]
+    for dt in (np.uint8, np.uint16, np.int16):
+        info = np.iinfo(dt)
+        v = np.arange(info.min, info.max + 1, dtype=np.int64).astype(dt)
+        for mv in mvs:
+            lim, every = _top_limit(mv, dt)
+            assert lim.dtype == dt
+            np.testing.assert_array_equal((v < lim[0]) | every, v.astype(float) < mv)
+    f = np.float32
+    for mv in [255.0, 254.5, 0.1, 1e-30, 3.4e38, 3.5e38, 1e300, -0.1, np.inf, np.nan]:
+        lim, every = _top_limit(mv, f)
+        c = f(mv) if abs(mv) < 3.4e38 or not np.isfinite(mv) else f(3.4028235e38)
+        near = [c]
+        with np.errstate(over="ignore"):
+            for _ in range(3):
+                near = [np.nextafter(near[0], f(-np.inf))] + near + [
+                    np.nextafter(near[-1], f(np.inf))]
+        v = np.array(near + [f(0.0), f(-1.0), f(np.inf), f(-np.inf), f(np.nan)], dtype=f)
+        np.testing.assert_array_equal((v < lim[0]) | every, v.astype(float) < mv)
+    v = np.array([254.99999999999997, 255.0, 255.00000000000003, np.nan], dtype=np.float64)
+    lim, every = _top_limit(255.0, np.float64)
+    np.testing.assert_array_equal((v < lim[0]) | every, v < 255.0)
 
 
 def test_fast_path_bad_input():

@@ -501,7 +501,7 @@ def _terms(tail, scale, tol, n_max):
 def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, cw, s2w, c2w, ew,
                  periods, length, tables, nf_tables, has_table, ser_a, ser_b,
                  ser_c0, ser_d, ser_n, has_series, ser_da, ser_db, ser_tg, ser_tn, wbound,
-                 tol_x, tol_next, tol_nf, max_value, min_mod2,
+                 tol_x, tol_next, tol_nf, top_lim, top_all, min_mod2,
                  max_res, full, noise_c, noise_gain, block_rows, tile,
                  out_u, out_mask, out_mod,
                  out_sigma, out_bg, out_exp, out_sat, out_low, out_shadow, out_rel):
@@ -550,6 +550,10 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
     wbound : (L, 2) float32: the factor 1 / nf^2 of a level's weight lies within
         [wbound[l, 1], wbound[l, 0]] (1, 1 without a correction).
     tol_x : float, px; tol_next, tol_nf : float (see above).
+    top_lim : (1,) array of the stacks' dtype, top_all : bool: a sample v is below the
+        saturation level max_value exactly when ``v < top_lim[0] or top_all``
+        (telefringe.fringes.fast._top_limit): the test in the samples' own type, which
+        vectorises on integers without widening them to float64.
     min_mod2 : (L,) float32, thresholds on S^2 + C^2 (rounded up to float32).
     max_res : float, rad.
     full : bool. False: weights (p B)^2 and only out_u, out_mask, out_mod (B of the
@@ -573,6 +577,7 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
     max_res32 = _F32(max_res)
     n_blocks = (rows + block_rows - 1) // block_rows
     dt = stacks[0].dtype
+    lim = top_lim[0]
     # the exposure map is written only where the finest level has several exposures
     hdr_last = lev_first[n_lev] - lev_first[n_lev - 1] > 1
     for blk in nb.prange(n_blocks):
@@ -679,13 +684,13 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                         e = exposure[mem]
                         if first_mem:
                             for j in range(nj):
-                                found[j] = top[j] < max_value
+                                found[j] = (top[j] < lim) | top_all
                             if full and hdr_last and lev == n_lev - 1:
                                 for j in range(nj):
                                     expo[j] = e
                         else:  # a shorter exposure where the longer ones saturate
                             for j in range(nj):
-                                sel[j] = (not found[j]) & (mtop[j] < max_value)
+                                sel[j] = (not found[j]) & ((mtop[j] < lim) | top_all)
                             for j in range(nj):
                                 s32[j] = ms32[j] if sel[j] else s32[j]
                             for j in range(nj):
