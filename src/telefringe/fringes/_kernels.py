@@ -502,7 +502,7 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                  periods, length, tables, nf_tables, has_table, ser_a, ser_b,
                  ser_c0, ser_d, ser_n, has_series, ser_da, ser_db, ser_tg, ser_tn, wbound,
                  tol_x, tol_next, tol_nf, top_lim, top_all, min_mod2,
-                 max_res, full, noise_c, noise_gain, block_rows, tile,
+                 max_res, full, noise_c, noise_gain, small_sums, block_rows, tile,
                  out_u, out_mask, out_mod,
                  out_sigma, out_bg, out_exp, out_sat, out_low, out_shadow, out_rel):
     """One pass over the images of a hierarchical ladder (coarse to fine, the first level
@@ -559,6 +559,9 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
     full : bool. False: weights (p B)^2 and only out_u, out_mask, out_mod (B of the
         finest level) are written. True: weights 1 / sigma_x^2 from the noise model
         var = noise_c + noise_gain * max(quadrature level, 0) and every output.
+    small_sums : bool, every sum below 2^25 in magnitude (integer samples below 2^16,
+        N <= 256): the full decode's weights in one division instead of two (the
+        products of three sums stay inside float32).
     out_* : (rows, cols) arrays (the unused ones may be (1, 1)): out_u, out_mod, out_sigma,
         out_bg, out_exp float64; out_mask, out_sat, out_low, out_shadow, out_rel bool.
         out_exp is written only where the finest level has several exposures (else it is
@@ -722,7 +725,23 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                         nc32 = _F32(noise_c)
                         ng32 = _F32(noise_gain)
                         m_two = _F32(-2.0)
-                        for j in range(nj):
+                        if small_sums:
+                            # the same weight with one division instead of two, both sides
+                            # of w = wk R^2 / d multiplied by R^2: R^2 d = nc R^2 + ng
+                            # max(sa R^2 - (R^2 cos 2phi c2 - R^2 sin 2phi s2), 0) / N.
+                            # (Only where the sums are bounded, |sums| < 2^25: the products
+                            # of three of them stay far inside float32.)
+                            for j in range(nj):
+                                a = s32[j]
+                                b = c32[j]
+                                r2 = m2[j]
+                                pq = (b * b - a * a) * c2[j] - (m_two * a * b) * s2[j]
+                                q = (sa[j] * r2 - pq) * inv_n32
+                                dd = nc32 * r2 + ng32 * (q if q > _ZERO32 else _ZERO32)
+                                use = (r2 > _ZERO32) & (dd > _ZERO32)
+                                w = wk * r2 * r2 / (dd if use else _ONE32)
+                                wl[j] = w if use else _ZERO32
+                        for j in range(nj if not small_sums else 0):
                             a = s32[j]
                             b = c32[j]
                             r2 = m2[j]

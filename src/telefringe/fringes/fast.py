@@ -492,7 +492,8 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
            NF_SERIES_TOL) if SERIES_CUT else (0.0, 0.0, 0.0)),
         *_top_limit(max_value, dt), min_mod2,
         float(max_residual), bool(full), float(noise.read_noise ** 2 + noise.quantization ** 2),
-        float(noise.gain), int(block_rows), _tile_width(shape[1], tile),
+        float(noise.gain), bool(integer and max(steps) <= 256), int(block_rows),
+        _tile_width(shape[1], tile),
         out["coordinate"], out["valid"], out["modulation"],
         *(out[name] for name, _ in names))
     if full and one_exposure:
