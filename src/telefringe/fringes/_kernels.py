@@ -176,11 +176,28 @@ def _wrap32(q):
 def _series_angles32(s, c, m2, d, sc, nj):
     """cos(d phi), sin(d phi) of the measured phase into sc[0], sc[1] (float32), from the
     sums: exp(i phi) = (C - i S) / R, then its d-th power (in one pass up to d = 4, then
-    multiplied in). 0 where S = C = 0. Uses sc[2], sc[3] as scratch."""
+    multiplied in). 0 where S = C = 0. Uses sc[2], sc[3] as scratch. For d = 2 and 4 (the
+    4-step ladders' gamma: harmonics of 4 phi) without the square root: exp(2 i phi) =
+    (C - i S)^2 / R^2, one division."""
     x = sc[0]
     y = sc[1]
     zr = sc[2]
     zi = sc[3]
+    if d == 2 or d == 4:
+        m_two = _F32(-2.0)
+        for j in range(nj):
+            r2 = m2[j]
+            inv = _ONE32 / (r2 if r2 > _ZERO32 else _ONE32)
+            inv = inv if r2 > _ZERO32 else _ZERO32
+            cj = c[j]
+            sj = s[j]
+            br = (cj * cj - sj * sj) * inv
+            bi = (m_two * cj * sj) * inv
+            dr = br * br - bi * bi
+            di = br * bi + bi * br
+            x[j] = br if d == 2 else dr
+            y[j] = bi if d == 2 else di
+        return
     for j in range(nj):
         r2 = m2[j]
         inv = _ONE32 / math.sqrt(r2 if r2 > _ZERO32 else _ONE32)
@@ -288,7 +305,8 @@ def _series_correct32(ph, s, c, m2, ca, cb, c0, d, ng, sc, nj, with_nf, da, db, 
 
     Accuracy with every term (float32, against the exact inverse;
     tests/test_decode_fast.py): the correction within 4.1e-7 rad (the polynomial
-    arctangent's error included), the noise factor within 5.5e-7 relative."""
+    arctangent's error included), the noise factor within 3.5e-7 relative (2.7e-7 for the
+    paper rig's 27 terms: 5.3e-7 when exp(4 i phi) came through a square root)."""
     x = sc[0]
     y = sc[1]
     _series_angles32(s, c, m2, d, sc, nj)
@@ -501,8 +519,8 @@ def _terms(tail, scale, tol, n_max):
 def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, cw, s2w, c2w, ew,
                  periods, length, tables, nf_tables, has_table, ser_a, ser_b,
                  ser_c0, ser_d, ser_n, has_series, ser_da, ser_db, ser_tg, ser_tn, wbound,
-                 tol_x, tol_next, tol_nf, max_value, min_mod2,
-                 max_res, full, noise_c, noise_gain, block_rows, tile,
+                 tol_x, tol_next, tol_nf, top_lim, top_all, min_mod2,
+                 max_res, full, noise_c, noise_gain, small_sums, block_rows, tile,
                  out_u, out_mask, out_mod,
                  out_sigma, out_bg, out_exp, out_sat, out_low, out_shadow, out_rel):
     """One pass over the images of a hierarchical ladder (coarse to fine, the first level
@@ -550,11 +568,18 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
     wbound : (L, 2) float32: the factor 1 / nf^2 of a level's weight lies within
         [wbound[l, 1], wbound[l, 0]] (1, 1 without a correction).
     tol_x : float, px; tol_next, tol_nf : float (see above).
+    top_lim : (1,) array of the stacks' dtype, top_all : bool: a sample v is below the
+        saturation level max_value exactly when ``v < top_lim[0] or top_all``
+        (telefringe.fringes.fast._top_limit): the test in the samples' own type, which
+        vectorises on integers without widening them to float64.
     min_mod2 : (L,) float32, thresholds on S^2 + C^2 (rounded up to float32).
     max_res : float, rad.
     full : bool. False: weights (p B)^2 and only out_u, out_mask, out_mod (B of the
         finest level) are written. True: weights 1 / sigma_x^2 from the noise model
         var = noise_c + noise_gain * max(quadrature level, 0) and every output.
+    small_sums : bool, every sum below 2^25 in magnitude (integer samples below 2^16,
+        N <= 256): the full decode's weights in one division instead of two (the
+        products of three sums stay inside float32).
     out_* : (rows, cols) arrays (the unused ones may be (1, 1)): out_u, out_mod, out_sigma,
         out_bg, out_exp float64; out_mask, out_sat, out_low, out_shadow, out_rel bool.
         out_exp is written only where the finest level has several exposures (else it is
@@ -573,6 +598,7 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
     max_res32 = _F32(max_res)
     n_blocks = (rows + block_rows - 1) // block_rows
     dt = stacks[0].dtype
+    lim = top_lim[0]
     # the exposure map is written only where the finest level has several exposures
     hdr_last = lev_first[n_lev] - lev_first[n_lev - 1] > 1
     for blk in nb.prange(n_blocks):
@@ -679,13 +705,13 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                         e = exposure[mem]
                         if first_mem:
                             for j in range(nj):
-                                found[j] = top[j] < max_value
+                                found[j] = (top[j] < lim) | top_all
                             if full and hdr_last and lev == n_lev - 1:
                                 for j in range(nj):
                                     expo[j] = e
                         else:  # a shorter exposure where the longer ones saturate
                             for j in range(nj):
-                                sel[j] = (not found[j]) & (mtop[j] < max_value)
+                                sel[j] = (not found[j]) & ((mtop[j] < lim) | top_all)
                             for j in range(nj):
                                 s32[j] = ms32[j] if sel[j] else s32[j]
                             for j in range(nj):
@@ -717,7 +743,23 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                         nc32 = _F32(noise_c)
                         ng32 = _F32(noise_gain)
                         m_two = _F32(-2.0)
-                        for j in range(nj):
+                        if small_sums:
+                            # the same weight with one division instead of two, both sides
+                            # of w = wk R^2 / d multiplied by R^2: R^2 d = nc R^2 + ng
+                            # max(sa R^2 - (R^2 cos 2phi c2 - R^2 sin 2phi s2), 0) / N.
+                            # (Only where the sums are bounded, |sums| < 2^25: the products
+                            # of three of them stay far inside float32.)
+                            for j in range(nj):
+                                a = s32[j]
+                                b = c32[j]
+                                r2 = m2[j]
+                                pq = (b * b - a * a) * c2[j] - (m_two * a * b) * s2[j]
+                                q = (sa[j] * r2 - pq) * inv_n32
+                                dd = nc32 * r2 + ng32 * (q if q > _ZERO32 else _ZERO32)
+                                use = (r2 > _ZERO32) & (dd > _ZERO32)
+                                w = wk * r2 * r2 / (dd if use else _ONE32)
+                                wl[j] = w if use else _ZERO32
+                        for j in range(nj if not small_sums else 0):
                             a = s32[j]
                             b = c32[j]
                             r2 = m2[j]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import math
 import threading
 from dataclasses import dataclass
 
@@ -341,6 +342,30 @@ def _weights(steps: int, offset: float):
     return c, s, c2, s2, exact
 
 
+def _top_limit(max_value: float, dtype) -> tuple[np.ndarray, bool]:
+    """The fused kernel's saturation test in the samples' own type: (lim, all) with, for
+    every value v of ``dtype``, ``v < max_value`` (exactly, as real numbers) if and only if
+    ``v < lim[0] or all``. lim : (1,) array of ``dtype``."""
+    dt = np.dtype(dtype)
+    mv = float(max_value)
+    if dt.kind in "ui":
+        info = np.iinfo(dt)
+        if np.isnan(mv):  # nothing is below NaN
+            return np.array([info.min], dtype=dt), False
+        if mv > info.max:  # every value, info.max included
+            return np.array([info.max], dtype=dt), True
+        # integers: v < mv exactly when v < ceil(mv); below info.min: none is
+        return np.array([max(math.ceil(mv), info.min) if np.isfinite(mv) else info.min],
+                        dtype=dt), False
+    # floats: v < mv exactly when v < the smallest value of the type >= mv (none lies
+    # between mv and it); NaN stays NaN (nothing is below it)
+    with np.errstate(over="ignore"):  # (above the type's range: inf)
+        lim = dt.type(mv)
+        if float(lim) < mv:
+            lim = np.nextafter(lim, dt.type(np.inf))
+    return np.array([lim], dtype=dt), False
+
+
 def _tile_width(cols: int, tile: int) -> int:
     """The kernel's tile width: ``cols`` split into the fewest equal tiles of at most
     ``tile`` pixels."""
@@ -465,9 +490,10 @@ def _fused(levels, periods, steps, offsets, *, length: int, max_value: float, mi
         ser_da, ser_db, ser_tg, ser_tn, wbound,
         *((SERIES_TAIL * float(length) / (TWO_PI * float(periods[-1])), ORDER_TOL,
            NF_SERIES_TOL) if SERIES_CUT else (0.0, 0.0, 0.0)),
-        float(max_value), min_mod2,
+        *_top_limit(max_value, dt), min_mod2,
         float(max_residual), bool(full), float(noise.read_noise ** 2 + noise.quantization ** 2),
-        float(noise.gain), int(block_rows), _tile_width(shape[1], tile),
+        float(noise.gain), bool(integer and max(steps) <= 256), int(block_rows),
+        _tile_width(shape[1], tile),
         out["coordinate"], out["valid"], out["modulation"],
         *(out[name] for name, _ in names))
     if full and one_exposure:

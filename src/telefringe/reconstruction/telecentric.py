@@ -470,11 +470,15 @@ def _solve_fast(a, b, up, vp, su, sv, mask, has_v, combine, kp, Rc, max_res, max
 # gives sigma. The error left after the Newton step is estimated from its quadratic
 # convergence as in _newton_step; pixels above the tolerance go to the slow pass. Two
 # divisions per pixel, no v_p, no residual. The loop is bound by its arithmetic, not by
-# its memory traffic (see the module's notes).
+# its memory traffic (see the module's notes). FMA contraction (fastmath "contract", no
+# other flag): one rounding instead of two in the polynomial and chord arithmetic, ~10 %
+# less CPU for the loop; the points move by at most 2e-14 mm against the uncontracted
+# loop on the paper rig, and tests/test_triangulate_generic.py holds the fast path to the
+# generic solve within 1e-9 mm.
 _N_CHORD = 2
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
 def _solve_u_block(a, b, up, su, mask, kp, Rc, max_sz, x, y, z, sig, flags,
                    ok):  # pragma: no cover - numba
     # returns the number of pixels left to the slow pass
