@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from telefringe.fringes.decode import decode
+from telefringe.fringes.fast import decode_axis_fast
 from telefringe.fringes.scan import PhaseGroup, Scan, ScanManifest
 from telefringe.io.errors import InputError
 from telefringe.io.scan_json import read_scan, write_scan
@@ -86,7 +87,8 @@ def test_full_range_16bit_scan_and_saturation_round_trip(tmp_path):
 
 def test_lone_one_period_group_decodes_the_whole_projector():
     # a scan of one one-period group per axis (no ladder): the fused kernel returned NaN
-    # for every pixel whose wrapped phase was negative (the projector's second half)
+    # for every pixel whose wrapped phase was negative (the projector's second half);
+    # the default decode goes through it (fast.decode_axis_fast too)
     sc = _fringe_scan(65535)
     for gamma in (True, False):
         fast = decode(sc, gamma_correction=gamma)
@@ -98,6 +100,9 @@ def test_lone_one_period_group_decodes_the_whole_projector():
         # measured)
         assert np.nanmax(np.abs(fast.u_p - cols)) < 0.01
         np.testing.assert_allclose(fast.u_p, exact.u_p, atol=1e-9)
+    bare = decode_axis_fast(sc.stacks, [1], 4, length=20, max_value=sc.max_value)
+    np.testing.assert_array_equal(bare.mask, fast.mask)
+    np.testing.assert_allclose(bare.coordinate, fast.u_p, atol=1e-9)
 
 
 def test_global_flags_work_after_the_command(tmp_path, capsys):

@@ -851,8 +851,9 @@ def fused_ladder(stacks, lev_first, exposure, exact32, nsteps, sw32, cw32, sw, c
                     if lev == 0:
                         for j in range(nj):
                             q = ph[j] + cut32
-                            phi_abs[j] = q - _TWO_PI32 * np.floor(q * inv2pi32) - cut32
-                            kk[j] = _ZERO32
+                            kq = -np.floor(q * inv2pi32)  # 1 where ph < -cut, else 0
+                            phi_abs[j] = q + _TWO_PI32 * kq - cut32
+                            kk[j] = kq  # (read where the one-period level is the last)
                         for j in range(nj):
                             ok[j] = found[j] & (m2[j] >= thr)
                         if full:

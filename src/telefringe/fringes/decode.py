@@ -435,10 +435,7 @@ def decode_axis(scan: Scan, axis: str, *, method: str = "auto", gamma_correction
         gray = max(grays, key=lambda gs: (gs[0].complementary, gs[0].exposure))
     method = choose_method(list(sets), length=length,
                            gray_bits=gray[0].bits if gray else None, method=method)
-    # (a lone one-period group takes the exact path: the fused kernel reads its wrapped
-    # phase in (-pi, pi] as the coordinate, which loses the projector's second half)
-    fusable = (not exact and method == "hierarchical" and len(sets) >= 2
-               and _fusable(sets))
+    fusable = not exact and method == "hierarchical" and _fusable(sets)
     given = _given_fit(phase_errors, axis, sets) if gamma_correction else None
     if fusable and (given is not None or not (gamma_correction and len(sets) >= 2)):
         fit = given
@@ -576,12 +573,12 @@ def decode(scan: Scan, *, method: str = "auto", gamma_correction: bool = True,
     max_residual : float, rad, order-consistency tolerance of the unwrapping (pi/2).
     gray_min_contrast : float, DN, contrast below which a Gray bit counts as unread
         (default 3 sigma_I at the threshold level).
-    exact : bool. False (default): hierarchical ladders of >= 2 period counts (with HDR
-        sets, any step counts, 8/16-bit or float) go through one pass of the fused kernel
-        (float32 polynomial arctangent and unwrapping, the result assembled in float64;
-        u_p within 2e-6 rad * L / (2 pi p_fine) of the exact path, tested up to
-        L = 3840 px); the other methods always take the exact path. True: float64 NumPy throughout
-        (``numpy.arctan2``).
+    exact : bool. False (default): hierarchical ladders (with HDR sets, any step counts,
+        8/16-bit or float; a lone one-period group too) go through one pass of the fused
+        kernel (float32 polynomial arctangent and unwrapping, the result assembled in
+        float64; u_p within 2e-6 rad * L / (2 pi p_fine) of the exact path, tested up to
+        L = 3840 px); the other methods always take the exact path. True: float64 NumPy
+        throughout (``numpy.arctan2``).
     phase_errors : mapping ``(axis, periods, steps) -> PhaseErrorModel`` or None, the
         projector nonlinearity learned beforehand (e.g.
         :attr:`telefringe.calibrate.RigCalibration.phase_errors`). An axis whose every
