@@ -330,7 +330,9 @@ def sphere_fixed_robust(p, w, start, has_start, r, reject_k, rounds, mad):
                 j += 1
         c0 = start if has_start else _start_fixed(pk, wk, r)
         x0 = np.array([c0[0], c0[1], c0[2], r])
-        x, f, J = sphere_lm(pk, wk, x0, 3, 100)
+        # np.int64, not the literals: one compiled signature for this call and
+        # spheres._sphere_geometric's (a literal argument compiles its own)
+        x, f, J = sphere_lm(pk, wk, x0, np.int64(3), np.int64(100))
         fitted = keep.copy()
         if rounds == 1:
             break

@@ -95,8 +95,11 @@ def prepare_caps(pts, sig, bg, view, off, r, rho2_max, cos_min, npar, reject_k, 
         if m < 10:
             status[k] = TOO_FEW
             continue
-        ok, c, f, J, keep = sphere_fixed_robust(p[:m], np.ones(m), np.zeros(3), False, r,
-                                                reject_k, 5, mad)
+        # np.bool_ / np.int64, not literals: the one signature spheres.fit_sphere and
+        # fit_caps also call (a literal argument compiles its own, ~2.5 s each)
+        ok, c, f, J, keep = sphere_fixed_robust(p[:m], np.ones(m), np.zeros(3),
+                                                np.bool_(False), r, reject_k,
+                                                np.int64(5), mad)
         if not ok or not (np.isfinite(c[0]) and np.isfinite(c[1]) and np.isfinite(c[2])):
             status[k] = FAILED
             continue
@@ -160,7 +163,8 @@ def fit_caps(pts, R, w, off, counts, c0, balls, theta, view, r, reject_k, mad,
         for i in range(m):
             wf[i] = w[a + i] / mean_w
         schur_ok[t] = False
-        ok, c, f, J, keep = sphere_fixed_robust(q, wf, c0[k], True, r, reject_k, 5, mad)
+        ok, c, f, J, keep = sphere_fixed_robust(q, wf, c0[k], np.bool_(True), r, reject_k,
+                                                np.int64(5), mad)
         good = ok and np.isfinite(c[0]) and np.isfinite(c[1]) and np.isfinite(c[2])
         JtJ = _gram(J)
         if not good or _det3(JtJ) == 0.0:
