@@ -3,6 +3,7 @@
 import fcntl
 import hashlib
 import os
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -48,6 +49,68 @@ def jacobian_error():
     """``jacobian_error(problem, x, rel_step=1e-6) -> float``: a bundle problem's analytic
     Jacobian against finite differences (relative to each column's scale)."""
     return _jacobian_error
+
+
+def _built_once(tmp_path_factory, name: str, build) -> Path:
+    """The folder ``name`` that ``build(folder)`` fills, built once per test run and shared
+    by every test module (and every pytest-xdist worker) that asks for it: treat it as
+    read-only (copy what a test writes into).
+
+    It sits beside the workers' own temporary folders (in the run's base folder, which
+    xdist's workers share), behind an exclusive file lock: the first asker builds it into
+    a ``.part`` folder renamed when complete, the others wait and then find it. A build
+    that raises leaves nothing, and the next asker builds it again."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent
+    folder = root / f"shared-{name}"
+    with open(root / f"shared-{name}.lock", "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            if not folder.exists():
+                part = root / f"shared-{name}.part"
+                shutil.rmtree(part, ignore_errors=True)
+                part.mkdir()
+                build(part)
+                part.rename(folder)
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+    return folder
+
+
+def _paper_bga_window():
+    """The paper rig read out in the 160 x 160 px window of its BGA view (about 6 x 6 balls
+    at full resolution), a VirtualRig."""
+    from telefringe.simulate.experiments import bga_window
+    from telefringe.simulate.presets import crop_camera, get_preset
+
+    paper = get_preset("paper")
+    col0, row0 = bga_window(paper, size=160)
+    return crop_camera(paper, col0=col0, row0=row0, width=160, height=160)
+
+
+@pytest.fixture(scope="session")
+def bga_window_reconstruction(tmp_path_factory):
+    """``(vrig, folder)``: the paper rig read out in the 160 x 160 px window of its BGA
+    view (about 6 x 6 balls at full resolution, a VirtualRig), and the reconstruction
+    folder (``reconstruct_to_folder``'s output; read-only: copy it before a command
+    writes into it) of its HDR scan of the virtual BGA (``make_scene("bga", seed=4)``,
+    ``HDR_EXPOSURES``, seed 4), made once per test run for every module that measures
+    it."""
+    def build(folder):
+        import telefringe.simulate.render as sim
+        from telefringe.cli.reconstruct import reconstruct_to_folder
+        from telefringe.io.scan_json import write_scan
+        from telefringe.simulate import scenes
+        from telefringe.simulate.presets import HDR_EXPOSURES
+
+        vr = _paper_bga_window()
+        scan, _ = sim.render_scan(vr, scenes.make_scene("bga", seed=4),
+                                  sim.default_groups(vr), exposures=HDR_EXPOSURES, seed=4)
+        write_scan(folder / "scan", scan)
+        reconstruct_to_folder(folder / "scan", vr.rig, folder / "out")
+
+    return _paper_bga_window(), _built_once(tmp_path_factory, "bga-window", build) / "out"
 
 
 def _share_numba_compilations_between_workers() -> None:

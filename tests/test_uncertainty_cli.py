@@ -6,36 +6,30 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from dataclasses import replace
 
 import numpy as np
 import pytest
 from test_calibrate import synthetic_calibration
 
-import telefringe.simulate.render as sim
 from telefringe.cli import main
-from telefringe.cli.reconstruct import reconstruct_to_folder
 from telefringe.io.rig_json import save_rig
-from telefringe.io.scan_json import write_scan
-from telefringe.simulate import scenes
 from telefringe.simulate.experiments import bga_window
-from telefringe.simulate.presets import HDR_EXPOSURES, crop_camera, get_preset
+from telefringe.simulate.presets import crop_camera, get_preset
 
 
 @pytest.fixture(scope="module")
-def bga_and_rig(tmp_path_factory):
+def bga_and_rig(tmp_path_factory, bga_window_reconstruction):
     tmp = tmp_path_factory.mktemp("bga_unc")
-    paper = get_preset("paper")
-    col0, row0 = bga_window(paper, size=160)
-    vr = crop_camera(paper, col0=col0, row0=row0, width=160, height=160)
-    scan, _ = sim.render_scan(vr, scenes.make_scene("bga", seed=4), sim.default_groups(vr),
-                              exposures=HDR_EXPOSURES, seed=4)
-    write_scan(tmp / "scan", scan)
-    reconstruct_to_folder(tmp / "scan", vr.rig, tmp / "out")
+    vr, out = bga_window_reconstruction
+    shutil.copytree(out, tmp / "out")
     # a covariance of the right kind: a synthetic calibration of a paper-like rig
     cal = synthetic_calibration(11)
     params = np.concatenate([vr.rig.camera.to_params(), vr.rig.projector.to_params()])
     save_rig(tmp / "rig.json", replace(cal, rig=vr.rig, parameters=params))
+    paper = get_preset("paper")
+    col0, row0 = bga_window(paper, size=160)
     wrong = crop_camera(paper, col0=col0, row0=row0, width=150, height=160)
     save_rig(tmp / "wrong.json", replace(cal, rig=wrong.rig, parameters=params))
     return tmp

@@ -9,6 +9,147 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+# Small hand-written forms of the NumPy functions these kernels need. numba's own
+# (np.percentile, np.median, np.linalg.solve / inv: LAPACK through scipy) each cost
+# several CPU seconds of compilation in every kernel that uses them; these cost a
+# fraction of one. The order statistics are exact (the same values as numba's);
+# the 3 x 3 / 4 x 4 solves are LU with partial pivoting, LAPACK's algorithm, equal to
+# it to rounding (tests/test_fit_kernels.py). Arrays are copied element by element, not
+# by slice assignment, whose shape check compiles numba's string formatting (~5 s).
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _order_pair(a, k):
+    """The (k+1)-th and (k+2)-th smallest values of ``a`` (n,) (0 <= k < n - 1), by
+    partial selection (a quickselect that reorders ``a`` in place)."""
+    lo = 0
+    hi = a.size - 1
+    while hi > lo:
+        mid = (lo + hi) >> 1
+        # median of three as the pivot: a[lo] <= a[mid] <= a[hi]
+        if a[mid] < a[lo]:
+            a[mid], a[lo] = a[lo], a[mid]
+        if a[hi] < a[mid]:
+            a[hi], a[mid] = a[mid], a[hi]
+            if a[mid] < a[lo]:
+                a[mid], a[lo] = a[lo], a[mid]
+        pivot = a[mid]
+        i = lo
+        j = hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while pivot < a[j]:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        # a[lo:j + 1] <= pivot, a[j + 1:i] == pivot, a[i:hi + 1] >= pivot
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    nxt = a[k + 1]
+    for i in range(k + 2, a.size):
+        if a[i] < nxt:
+            nxt = a[i]
+    return a[k], nxt
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _percentile(h, q):
+    """``np.percentile(h, q)`` of ``h`` (n,) for 0 < q < 100 (linear interpolation
+    between the closest ranks, numba's formula; NaN where ``h`` holds a NaN or is
+    empty)."""
+    n = h.size
+    for i in range(n):
+        if np.isnan(h[i]):
+            return np.nan
+    if n == 0:
+        return np.nan
+    if n == 1:
+        return h[0]
+    rank = 1.0 + (n - 1) * (q / 100.0)
+    f = np.floor(rank)
+    m = rank - f
+    lower, upper = _order_pair(h.copy(), int(f) - 1)
+    return lower * (1 - m) + upper * m
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _median(a):
+    """``np.median(a)`` of ``a`` (n,) (NaN where it holds a NaN or is empty)."""
+    n = a.size
+    for i in range(n):
+        if np.isnan(a[i]):
+            return np.nan
+    if n == 0:
+        return np.nan
+    if n == 1:
+        return a[0]
+    half = n >> 1
+    if n & 1 == 0:
+        lo, hi = _order_pair(a.copy(), half - 1)
+        return (lo + hi) / 2
+    return _order_pair(a.copy(), half - 1)[1]
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _solve(A, B):
+    """X (n, k) with A X = B for a small A (n, n) and B (n, k): LU with partial
+    pivoting (the row of the largest magnitude; multipliers by the pivot's reciprocal,
+    as LAPACK's getrf), forward then back substitution. Raises LinAlgError, as
+    ``np.linalg.solve``, where A or B holds an inf or NaN or a pivot is exactly zero."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(n):
+            if not np.isfinite(A[i, j]):
+                raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+        for j in range(B.shape[1]):
+            if not np.isfinite(B[i, j]):
+                raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+    LU = A.copy()
+    X = B.copy()
+    for c in range(n):
+        p = c
+        big = abs(LU[c, c])
+        for i in range(c + 1, n):
+            if abs(LU[i, c]) > big:
+                big = abs(LU[i, c])
+                p = i
+        if big == 0.0:
+            raise np.linalg.LinAlgError("Matrix is singular to machine precision.")
+        if p != c:
+            for j in range(n):
+                LU[c, j], LU[p, j] = LU[p, j], LU[c, j]
+            for j in range(X.shape[1]):
+                X[c, j], X[p, j] = X[p, j], X[c, j]
+        rec = 1.0 / LU[c, c]
+        for i in range(c + 1, n):
+            LU[i, c] *= rec
+        for i in range(c + 1, n):
+            li = LU[i, c]
+            for j in range(c + 1, n):
+                LU[i, j] -= li * LU[c, j]
+    for j in range(X.shape[1]):
+        for c in range(n):
+            for i in range(c + 1, n):
+                X[i, j] -= LU[i, c] * X[c, j]
+        for c in range(n - 1, -1, -1):
+            X[c, j] /= LU[c, c]
+            for i in range(c):
+                X[i, j] -= LU[i, c] * X[c, j]
+    return X
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _inv(A):
+    """The inverse of a small A (n, n) (:func:`_solve` of the identity)."""
+    return _solve(A, np.eye(A.shape[0]))
+
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _cost(p, w, x, f, d, dist):
@@ -86,16 +227,19 @@ def sphere_lm(p, w, x0, npar, max_iter):
             A = H.copy()
             for a in range(npar):
                 A[a, a] += lam * H[a, a]
-            sol = np.linalg.solve(A, g)
+            sol = _solve(A, g.reshape((npar, 1)))
             for a in range(4):
-                step[a] = -sol[a] if a < npar else 0.0
+                step[a] = -sol[a, 0] if a < npar else 0.0
                 xn[a] = x[a] + step[a]
             cn = _cost(p, w, xn, fn, dn, distn)
             if cn <= cost:
-                x[:] = xn
-                f[:] = fn
-                d[:, :] = dn
-                dist[:] = distn
+                for a in range(4):
+                    x[a] = xn[a]
+                for i in range(m):
+                    f[i] = fn[i]
+                    dist[i] = distn[i]
+                    for a in range(3):
+                        d[i, a] = dn[i, a]
                 cost_old = cost
                 cost = cn
                 lam = max(lam / 10, 1e-12)
@@ -141,7 +285,7 @@ def _start_fixed(p, w, r):
     h = np.empty(m)
     for i in range(m):
         h[i] = (p[i, 0] - c[0]) * n[0] + (p[i, 1] - c[1]) * n[1] + (p[i, 2] - c[2]) * n[2]
-    q = np.percentile(h, 75.0)
+    q = _percentile(h, 75.0)
     top = np.zeros(3)
     cnt = 0
     for i in range(m):
@@ -180,19 +324,22 @@ def sphere_fixed_robust(p, w, start, has_start, r, reject_k, rounds, mad):
         j = 0
         for i in range(m):
             if keep[i]:
-                pk[j] = p[i]
+                for ax in range(3):
+                    pk[j, ax] = p[i, ax]
                 wk[j] = w[i]
                 j += 1
         c0 = start if has_start else _start_fixed(pk, wk, r)
         x0 = np.array([c0[0], c0[1], c0[2], r])
-        x, f, J = sphere_lm(pk, wk, x0, 3, 100)
+        # np.int64, not the literals: one compiled signature for this call and
+        # spheres._sphere_geometric's (a literal argument compiles its own)
+        x, f, J = sphere_lm(pk, wk, x0, np.int64(3), np.int64(100))
         fitted = keep.copy()
         if rounds == 1:
             break
         a = np.empty(n_keep)
         for i in range(n_keep):
             a[i] = abs(f[i] * np.sqrt(wk[i]))
-        scale = mad * np.median(a) + 1e-15
+        scale = mad * _median(a) + 1e-15
         same = True
         new_keep = np.empty(m, dtype=np.bool_)
         for i in range(m):

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from telefringe.metrology._fit_kernels import sphere_fixed_robust
+from telefringe.metrology._fit_kernels import _inv, _solve, sphere_fixed_robust
 
 OK, TOO_FEW, FAILED, TOO_FEW_FACING = 0, 1, 2, 3
 
@@ -28,6 +28,18 @@ def _det3(A):
     return (A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1])
             - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
             + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]))
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _gram(J):
+    """J^T J (n, n) of J (m, n), the sums in row order."""
+    n = J.shape[1]
+    G = np.zeros((n, n))
+    for i in range(J.shape[0]):
+        for a in range(n):
+            for b in range(n):
+                G[a, b] += J[i, a] * J[i, b]
+    return G
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -83,12 +95,15 @@ def prepare_caps(pts, sig, bg, view, off, r, rho2_max, cos_min, npar, reject_k, 
         if m < 10:
             status[k] = TOO_FEW
             continue
-        ok, c, f, J, keep = sphere_fixed_robust(p[:m], np.ones(m), np.zeros(3), False, r,
-                                                reject_k, 5, mad)
+        # np.bool_ / np.int64, not literals: the one signature spheres.fit_sphere and
+        # fit_caps also call (a literal argument compiles its own, ~2.5 s each)
+        ok, c, f, J, keep = sphere_fixed_robust(p[:m], np.ones(m), np.zeros(3),
+                                                np.bool_(False), r, reject_k,
+                                                np.int64(5), mad)
         if not ok or not (np.isfinite(c[0]) and np.isfinite(c[1]) and np.isfinite(c[2])):
             status[k] = FAILED
             continue
-        if _det3(J.T @ J) == 0.0:  # fit_sphere's covariance would not invert
+        if _det3(_gram(J)) == 0.0:  # fit_sphere's covariance would not invert
             status[k] = FAILED
             continue
         q = 0
@@ -148,9 +163,10 @@ def fit_caps(pts, R, w, off, counts, c0, balls, theta, view, r, reject_k, mad,
         for i in range(m):
             wf[i] = w[a + i] / mean_w
         schur_ok[t] = False
-        ok, c, f, J, keep = sphere_fixed_robust(q, wf, c0[k], True, r, reject_k, 5, mad)
+        ok, c, f, J, keep = sphere_fixed_robust(q, wf, c0[k], np.bool_(True), r, reject_k,
+                                                np.int64(5), mad)
         good = ok and np.isfinite(c[0]) and np.isfinite(c[1]) and np.isfinite(c[2])
-        JtJ = J.T @ J
+        JtJ = _gram(J)
         if not good or _det3(JtJ) == 0.0:
             status[t] = FAILED
             continue
@@ -162,7 +178,10 @@ def fit_caps(pts, R, w, off, counts, c0, balls, theta, view, r, reject_k, mad,
                 s2 += wf[i] * f[nk] * f[nk]
                 nk += 1
         s2 /= max(nk - 3, 1)
-        cov[t] = s2 * np.linalg.inv(JtJ)
+        JtJ_inv = _inv(JtJ)
+        for x in range(3):
+            for y in range(3):
+                cov[t, x, y] = s2 * JtJ_inv[x, y]
         ss = 0.0
         fmin = np.inf
         fmax = -np.inf
@@ -214,11 +233,21 @@ def fit_caps(pts, R, w, off, counts, c0, balls, theta, view, r, reject_k, mad,
             chi2 += res * wi * res
         if _det3(H) == 0.0:
             continue
-        HiJK = np.linalg.solve(H, JWK)
-        HiJf = np.linalg.solve(H, JWr)
-        A_out[t] = KWK - JWK.T @ HiJK
-        b_out[t] = KWr - JWK.T @ HiJf
+        HiJK = _solve(H, JWK)
+        HiJf = _solve(H, JWr.reshape((3, 1)))
+        for x in range(npar):
+            for y in range(npar):
+                s = 0.0
+                for z in range(3):
+                    s += JWK[z, x] * HiJK[z, y]
+                A_out[t, x, y] = KWK[x, y] - s
+            s = 0.0
+            for z in range(3):
+                s += JWK[z, x] * HiJf[z, 0]
+            b_out[t, x] = KWr[x] - s
         chi2_out[t] = chi2
         dof_out[t] = nk - 3
-        dc_out[t] = -HiJK
+        for x in range(3):
+            for y in range(npar):
+                dc_out[t, x, y] = -HiJK[x, y]
         schur_ok[t] = True
