@@ -703,6 +703,12 @@ def _measure_with_spread(cloud: PointCloud, sel, fit0: SphereFit, rig, image, *,
 
     x = np.array([*fit0.centre, fit0.radius, *v0])
     x, f, cov, T, used, keep, K = robust(x, fit0.inliers.copy())
+    if not np.all(np.diag(cov) >= 0.0):
+        # a variance below zero (rounding about zero): some parameter, usually a spread
+        # variance that the brightness noise's correction leaves without information, is
+        # not determined by these points; no figure is given for it
+        raise MetrologyError("the sphere's point-spread model is not determined by these "
+                             "points (a parameter's variance came out below zero)")
     shared = not stereo or len(x) == 5
     sphere = SphereFit(x[:3].copy(), float(x[3]), float(np.sqrt(np.mean(f * f))),
                        float(f.max() - f.min()), int(p.shape[0]), int(f.size), used,
