@@ -144,7 +144,6 @@ def read_scan_with_progress(folder, manifest=None):
         return read_scan(folder, progress=tick)
 
 
-
 def warn_nonlinearity_kept(axes, gamma: bool) -> None:
     """Print :func:`telefringe.fringes.decode.nonlinearity_kept`'s messages as warnings
     (the projector nonlinearity asked to be removed but left in, per axis)."""
